@@ -1,0 +1,63 @@
+"""Gradient-safe elementwise math shared by every stage.
+
+Each function uses the per-element "double where": the unsafe branch is fed a harmless value
+where it would be singular, so neither the value nor the gradient is ever NaN or inf
+(the pattern of jax-md's `space.distance`). All functions work in float32 and float64.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+EPS = {jnp.dtype("float32"): 1e-12, jnp.dtype("float64"): 1e-30}
+
+
+def _eps(x) -> float:
+    return EPS.get(jnp.result_type(x), 1e-12)
+
+
+def safe_sqrt(x, eps: float | None = None):
+    """sqrt(max(x, 0)) with a finite gradient at and below 0 (gradient 0 there)."""
+    eps = _eps(x) if eps is None else eps
+    ok = x > eps
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+
+
+def safe_norm(x, axis: int = -1, keepdims: bool = False, eps: float | None = None):
+    """Euclidean norm along `axis`; 0 with gradient 0 for a zero vector."""
+    sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
+    return safe_sqrt(sq, eps)
+
+
+def safe_normalize(x, axis: int = -1, fallback=None, eps: float | None = None):
+    """x / |x| along `axis`; where |x| is (near) zero return `fallback` (default +y for 3-vectors,
+    else the first basis vector). Finite value and gradient everywhere."""
+    eps = _eps(x) if eps is None else eps
+    sq = jnp.sum(x * x, axis=axis, keepdims=True)
+    ok = sq > eps
+    n = jnp.sqrt(jnp.where(ok, sq, 1.0))
+    if fallback is None:
+        size = x.shape[axis]
+        shape = [1] * x.ndim
+        shape[axis] = size
+        fallback = jnp.zeros(size, x.dtype).at[1 if size == 3 else 0].set(1.0).reshape(shape)
+    return jnp.where(ok, jnp.where(ok, x, 1.0) / n, jnp.asarray(fallback, x.dtype))
+
+
+def safe_div(num, den, eps: float | None = None, fallback=0.0):
+    """num / den, returning `fallback` (gradient 0) where |den| <= eps."""
+    eps = _eps(den) if eps is None else eps
+    ok = jnp.abs(den) > eps
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), fallback)
+
+
+def safe_pow(x, k, eps: float = 1e-6):
+    """max(x, eps) ** k for x >= 0 inputs such as clamped cosines; finite for any real k."""
+    return jnp.power(jnp.maximum(x, eps), k)
+
+
+def safe_atan2(y, x, eps: float | None = None):
+    """atan2(y, x) that returns 0 with gradient 0 at the origin."""
+    eps = _eps(x) if eps is None else eps
+    ok = (x * x + y * y) > eps
+    return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, x, 1.0)), 0.0)

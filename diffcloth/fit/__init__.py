@@ -1,0 +1,1 @@
+"""diffcloth.fit stage."""

@@ -1,0 +1,1 @@
+"""diffcloth.physics stage."""
