@@ -1,0 +1,3 @@
+"""Images and videos (PNG, GIF, MP4) and result JSON."""
+
+__all__: list[str] = []
