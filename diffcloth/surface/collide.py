@@ -99,7 +99,7 @@ def collide_surface(surface: Surface, spheres: Sphere, *, normals: str = "sphere
         facing = jnp.where(jnp.sum(out * nrm, axis=-1, keepdims=True) < 0, -out, out)
         nrm = jnp.where(inside[:, None], facing, nrm)
     if normals == "grid":
-        n, t, b = grid_frames(pos, surface.grid_shape)
+        n, t, b = grid_frames(pos, surface.grid_shape, flip=surface.flipped)
     else:
         n = nrm
         t = orthonormal_tangent(surface.tangents, n)

@@ -77,7 +77,7 @@ def displace_along_normals(surface: Surface, height) -> Surface:
       height: (n,) displacement in m along each vertex normal; differentiable.
     Returns:
       The deformed Surface; normals, tangents and bitangents recomputed from the deformed grid
-      (oriented like the original: normal along dP/du x dP/dv).
+      (on the same side as the original: see `Surface.flipped`).
 
     Example:
       >>> h = waves(s.uv, 0.5, amplitude=0.01, wavelength=0.25)  # doctest: +SKIP
@@ -90,5 +90,5 @@ def displace_along_normals(surface: Surface, height) -> Surface:
             f"got {height.shape}"
         )
     pos = surface.positions + height[:, None] * surface.normals
-    n, t, b = grid_frames(pos, surface.grid_shape)
+    n, t, b = grid_frames(pos, surface.grid_shape, flip=surface.flipped)
     return dataclasses.replace(surface, positions=pos, normals=n, tangents=t, bitangents=b)

@@ -53,6 +53,8 @@ class Surface:
       faces: (m, 3) int32 triangle vertex indices, m = 2 (vrows - 1)(vcols - 1), counter-clockwise
         seen from the side the normals point to.
       grid_shape: static (vrows, vcols).
+      flipped: static; True if the normals were reversed (normal along dP/dv x dP/du) by
+        `tessellate(..., flip=True)`; frames recomputed later (`grid_frames`) keep this side.
     """
 
     positions: jax.Array
@@ -62,6 +64,7 @@ class Surface:
     uv: jax.Array
     faces: jax.Array
     grid_shape: tuple[int, int] = dataclasses.field(metadata={"static": True})
+    flipped: bool = dataclasses.field(default=False, metadata={"static": True})
 
 
 def _check_level(level) -> int:
@@ -161,19 +164,22 @@ def _grid_derivatives(grid: jax.Array):
     return diff(grid, 1), diff(grid, 0)
 
 
-def grid_frames(positions: jax.Array, grid_shape):
+def grid_frames(positions: jax.Array, grid_shape, *, flip: bool = False):
     """Frames recomputed from the vertex grid itself (for deformed or collided vertices).
 
     Args:
       positions: (vrows * vcols, 3) in m, row-major grid.
       grid_shape: (vrows, vcols).
+      flip: reverse the normals (pass `surface.flipped`).
     Returns:
       (normals, tangents, bitangents), each (n, 3), from central differences of the grid, oriented
-      like the analytic frames (normal along dP/du x dP/dv).
+      like the analytic frames (normal along dP/du x dP/dv, or the reverse if `flip`).
     """
     vrows, vcols = int(grid_shape[0]), int(grid_shape[1])
     grid = positions.reshape(vrows, vcols, 3)
     du, dv = _grid_derivatives(grid)
+    if flip:
+        dv = -dv
     n, t, b = frames_from_derivatives(du, dv)
     return n.reshape(-1, 3), t.reshape(-1, 3), b.reshape(-1, 3)
 
@@ -234,4 +240,5 @@ def tessellate(control_points, level: int = 13, basis: str = "bspline", *, flip:
         uv=grid_uv((vrows, vcols), dtype),
         faces=jnp.asarray(np.ascontiguousarray(faces)),
         grid_shape=(vrows, vcols),
+        flipped=bool(flip),
     )
