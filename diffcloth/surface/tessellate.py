@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import safe_normalize
+from diffcloth import _math
 from diffcloth.surface import basis as _basis
 
 __all__ = [
@@ -119,20 +119,61 @@ def grid_uv(grid_shape, dtype=None) -> jax.Array:
     return jnp.asarray(uv, dtype=dtype or jnp.zeros(()).dtype)
 
 
+def _cross(a, b):
+    ax, ay, az = a
+    bx, by, bz = b
+    return (ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx)
+
+
+def _normalize(v, fallback):
+    """Component-wise safe normalisation (per-element double where, as in _math.safe_normalize)."""
+    x, y, z = v
+    sq = x * x + y * y + z * z
+    ok = sq > _math._eps(sq)
+    inv = jax.lax.rsqrt(jnp.where(ok, sq, 1.0))
+    return tuple(jnp.where(ok, c * inv, f) for c, f in zip(v, fallback, strict=True))
+
+
+def _tangent(t_raw, n):
+    d = t_raw[0] * n[0] + t_raw[1] * n[1] + t_raw[2] * n[2]
+    t_raw = tuple(c - d * nc for c, nc in zip(t_raw, n, strict=True))
+    nx, ny, nz = n
+    zero = jnp.zeros_like(nx)
+    use_x = jnp.abs(nx) < 0.9
+    # n x (x or z axis, whichever is less aligned with n): unit-able, orthogonal to n
+    axis_cross = (
+        jnp.where(use_x, zero, ny),
+        jnp.where(use_x, nz, -nx),
+        jnp.where(use_x, -ny, zero),
+    )
+    one, nil = jnp.ones_like(nx), jnp.zeros_like(nx)
+    fallback = _normalize(axis_cross, (one, nil, nil))
+    return _normalize(t_raw, fallback)
+
+
+def _frames(du, dv):
+    """Frames from component tuples; returns (n, t, b) as component tuples."""
+    one, nil = jnp.ones_like(du[0]), jnp.zeros_like(du[0])
+    n = _normalize(_cross(du, dv), (nil, one, nil))
+    t = _tangent(du, n)
+    return n, t, _cross(n, t)
+
+
+def _split(a):
+    return a[..., 0], a[..., 1], a[..., 2]
+
+
+def _join(c):
+    return jnp.stack(c, axis=-1)
+
+
 def orthonormal_tangent(t_raw: jax.Array, n: jax.Array) -> jax.Array:
-    """Unit vector along `t_raw` with its component along the unit normal `n` removed.
+    """Unit vector along `t_raw` (..., 3) with its component along the unit normal `n` removed.
 
     Where that is (near) zero, falls back to n x (x or z axis, whichever is less aligned with n),
     which is unit, orthogonal to n and finite in value and gradient.
     """
-    t_raw = t_raw - jnp.sum(t_raw * n, axis=-1, keepdims=True) * n
-    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
-    zero = jnp.zeros_like(nx)
-    x_cross_n = jnp.stack([zero, -nz, ny], -1)  # (1, 0, 0) x n
-    z_cross_n = jnp.stack([-ny, nx, zero], -1)  # (0, 0, 1) x n
-    use_x = (jnp.abs(nx) < 0.9)[..., None]
-    fallback = safe_normalize(jnp.where(use_x, x_cross_n, z_cross_n))
-    return safe_normalize(t_raw, fallback=fallback)
+    return _join(_tangent(_split(t_raw), _split(n)))
 
 
 def frames_from_derivatives(du: jax.Array, dv: jax.Array):
@@ -145,10 +186,8 @@ def frames_from_derivatives(du: jax.Array, dv: jax.Array):
       derivative, e.g. coincident or collinear control points) falls back to finite values: the
       normal to +y, the tangent to a fixed axis orthogonal to the normal; gradients stay finite.
     """
-    n = safe_normalize(jnp.cross(du, dv))
-    t = orthonormal_tangent(du, n)
-    b = jnp.cross(n, t)
-    return n, t, b
+    n, t, b = _frames(_split(du), _split(dv))
+    return _join(n), _join(t), _join(b)
 
 
 def _grid_derivatives(grid: jax.Array):
@@ -222,21 +261,23 @@ def tessellate(control_points, level: int = 13, basis: str = "bspline", *, flip:
     bv, dbv = _basis.sampled_basis(shape[0], int(level), basis)
     wu = jnp.asarray(np.stack([bu, dbu]), dtype)  # (2, vcols, cols)
     bv, dbv = jnp.asarray(bv, dtype), jnp.asarray(dbv, dtype)
-    q = jnp.einsum("kjc,rcx->krjx", wu, p)  # (2, rows, vcols, 3): [P(u), dP/du] per net row
-    pos = jnp.einsum("ir,rjx->ijx", bv, q[0])
-    du = jnp.einsum("ir,rjx->ijx", bv, q[1])
-    dv = jnp.einsum("ir,rjx->ijx", dbv, q[0])
+    # Component-major layout (3, vrows, vcols) so the frame arithmetic vectorises; the outputs
+    # are interleaved to (n, 3) once at the end.
+    q = jnp.einsum("kjc,rcx->kxrj", wu, p)  # (2, 3, rows, vcols): [P(u), dP/du] per net row
+    pos = jnp.einsum("ir,xrj->xij", bv, q[0])
+    du = jnp.einsum("ir,xrj->xij", bv, q[1])
+    dv = jnp.einsum("ir,xrj->xij", dbv, q[0])
     if flip:
         dv = -dv
-    n, t, b = frames_from_derivatives(du, dv)
+    n, t, b = _frames(tuple(du), tuple(dv))
     faces = _faces_np(vrows, vcols)
     if flip:
         faces = faces[:, ::-1]
     return Surface(
-        positions=pos.reshape(-1, 3),
-        normals=n.reshape(-1, 3),
-        tangents=t.reshape(-1, 3),
-        bitangents=b.reshape(-1, 3),
+        positions=_join(tuple(pos)).reshape(-1, 3),
+        normals=_join(n).reshape(-1, 3),
+        tangents=_join(t).reshape(-1, 3),
+        bitangents=_join(b).reshape(-1, 3),
         uv=grid_uv((vrows, vcols), dtype),
         faces=jnp.asarray(np.ascontiguousarray(faces)),
         grid_shape=(vrows, vcols),
