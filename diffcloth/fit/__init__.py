@@ -1,1 +1,66 @@
-"""diffcloth.fit stage."""
+"""diffcloth.fit: image losses, parameter constraints, the optax loop, identifiability.
+
+The scene-level `fit(scene, targets, free=[...])` is built on these by the pipeline.
+"""
+
+from diffcloth.fit.constraints import (
+    Bounded,
+    Constraint,
+    Identity,
+    Positive,
+    make_constraint,
+    make_constraints,
+    to_physical,
+    to_raw,
+)
+from diffcloth.fit.identifiability import Identifiability, format_identifiability, identifiability
+from diffcloth.fit.loop import (
+    FitResult,
+    History,
+    MultiStartResult,
+    default_optimizer,
+    fit_multistart,
+    fit_params,
+    load_checkpoint,
+)
+from diffcloth.fit.losses import (
+    absolute_error,
+    blur,
+    charbonnier_error,
+    downsample,
+    gaussian_pyramid,
+    image_loss,
+    pyramid_loss,
+    squared_error,
+    validate_targets,
+)
+
+__all__ = [
+    "Bounded",
+    "Constraint",
+    "FitResult",
+    "History",
+    "Identifiability",
+    "Identity",
+    "MultiStartResult",
+    "Positive",
+    "absolute_error",
+    "blur",
+    "charbonnier_error",
+    "default_optimizer",
+    "downsample",
+    "fit_multistart",
+    "fit_params",
+    "format_identifiability",
+    "gaussian_pyramid",
+    "identifiability",
+    "image_loss",
+    "load_checkpoint",
+    "make_constraint",
+    "make_constraints",
+    "pyramid_loss",
+    "squared_error",
+    "to_physical",
+    "to_raw",
+    "validate_targets",
+]
