@@ -1,3 +1,281 @@
-"""Images and videos (PNG, GIF, MP4) and result JSON."""
+"""Images and videos (PNG, GIF, MP4) and result JSON.
 
-__all__: list[str] = []
+Images are float (H, W, C) in [0, 1] (C = 1, 3 or 4; (H, W) is grey); a video is (T, H, W, C).
+Writing clips to [0, 1] and rounds to 8 bits; reading returns float32 in [0, 1]
+(uint8 / 255). MP4 needs the optional `imageio-ffmpeg` (`pip install "diffcloth[video]"`);
+without it `save_video` writes a GIF next to the requested path and logs why.
+
+Example:
+    >>> import numpy as np, tempfile, os
+    >>> d = tempfile.mkdtemp()
+    >>> p = save_png(os.path.join(d, "a.png"), np.full((4, 4, 3), 0.5))
+    >>> load_image(p).shape
+    (4, 4, 3)
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "load_image",
+    "load_image_sequence",
+    "load_json",
+    "load_video",
+    "save_image_sequence",
+    "save_json",
+    "save_png",
+    "save_video",
+    "side_by_side",
+    "to_jsonable",
+    "to_uint8",
+]
+
+log = logging.getLogger("diffcloth.io")
+
+
+def to_uint8(image) -> np.ndarray:
+    """Float [0, 1] -> uint8 (clip, * 255, round); uint8 passes through; NaN/inf raise."""
+    a = np.asarray(image)
+    if a.dtype == np.uint8:
+        return a
+    if a.dtype == np.bool_:
+        return a.astype(np.uint8) * 255
+    a = a.astype(np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(
+            f"image of shape {a.shape} contains {int((~np.isfinite(a)).sum())} NaN/inf"
+        )
+    return np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def _check_image(image, name: str = "image") -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[-1] == 1:
+        a = a[..., 0]
+    if not (a.ndim == 2 or (a.ndim == 3 and a.shape[-1] in (3, 4))):
+        raise ValueError(f"{name} must be (H, W), (H, W, 1), (H, W, 3) or (H, W, 4); got {a.shape}")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise ValueError(f"{name} has an empty size {a.shape}")
+    return a
+
+
+def _check_video(video, name: str = "video") -> np.ndarray:
+    a = np.asarray(video)
+    if a.ndim == 4 and a.shape[-1] == 1:
+        a = a[..., 0]
+    if not (a.ndim == 3 or (a.ndim == 4 and a.shape[-1] in (3, 4))):
+        raise ValueError(
+            f"{name} must be (T, H, W), (T, H, W, 1), (T, H, W, 3) or (T, H, W, 4); got {a.shape}"
+        )
+    if a.shape[0] == 0:
+        raise ValueError(f"{name} has no frames (shape {a.shape})")
+    return a
+
+
+def save_png(path, image) -> Path:
+    """Write one image as PNG (8 bit). Creates parent folders. Returns the path."""
+    import imageio.v3 as iio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, to_uint8(_check_image(image)), extension=".png")
+    return path
+
+
+def load_image(path) -> np.ndarray:
+    """Read an image file as float32 (H, W, C) in [0, 1] (16-bit PNGs / 65535; grey -> C = 1)."""
+    import imageio.v3 as iio
+
+    a = np.asarray(iio.imread(path))
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.dtype == np.uint16:
+        return a.astype(np.float32) / 65535.0
+    if a.dtype == np.uint8:
+        return a.astype(np.float32) / 255.0
+    if a.dtype == np.bool_:
+        return a.astype(np.float32)
+    return a.astype(np.float32)
+
+
+def _rgb_frames(video) -> np.ndarray:
+    """(T, H, W[, C]) -> uint8 (T, H, W, 3): grey repeated, alpha composited over black."""
+    a = _check_video(video)
+    if a.ndim == 3:
+        a = np.repeat(np.asarray(a)[..., None], 3, axis=-1)
+    a = to_uint8(a)
+    if a.shape[-1] == 4:
+        rgb = a[..., :3].astype(np.float64) * (a[..., 3:].astype(np.float64) / 255.0)
+        a = np.round(rgb).astype(np.uint8)
+    return a
+
+
+def _has_ffmpeg() -> bool:
+    try:
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def save_video(path, video, fps: float = 20.0, *, loop: int = 0) -> Path:
+    """Write a video (T, H, W, C) as GIF (.gif) or MP4 (.mp4, needs imageio-ffmpeg).
+
+    Args:
+      path: output file; the suffix picks the format (.gif or .mp4).
+      video: (T, H, W), (T, H, W, 1|3|4) float in [0, 1] or uint8; alpha is composited over black.
+      fps: frames per second (> 0).
+      loop: GIF repeat count (0 = forever).
+    Returns:
+      The path written: for .mp4 without imageio-ffmpeg, the same path with suffix .gif (and a
+      logged warning saying so).
+    """
+    import imageio.v3 as iio
+
+    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps={fps!r} must be a finite number > 0")
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".gif", ".mp4"):
+        raise ValueError(f"save_video: path {str(path)!r} must end in .gif or .mp4")
+    frames = _rgb_frames(video)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".mp4":
+        if _has_ffmpeg():
+            h, w = frames.shape[1:3]
+            if h % 2 or w % 2:  # yuv420p needs even sizes
+                frames = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+            iio.imwrite(path, frames, plugin="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
+            return path
+        gif = path.with_suffix(".gif")
+        log.warning(
+            "imageio-ffmpeg is not installed, so MP4 cannot be written; wrote GIF %s instead "
+            "(pip install 'diffcloth[video]' for MP4)",
+            gif,
+        )
+        path = gif
+    iio.imwrite(path, frames, extension=".gif", duration=1000.0 / fps, loop=loop)
+    return path
+
+
+def load_video(path) -> np.ndarray:
+    """Read a GIF or MP4 as float32 (T, H, W, 3) in [0, 1]."""
+    import imageio.v3 as iio
+
+    path = Path(path)
+    if path.suffix.lower() == ".gif":
+        a = np.asarray(iio.imread(path, index=None, mode="RGB"))
+    else:
+        a = np.asarray(iio.imread(path, index=None))
+    if a.ndim == 3:  # a single frame
+        a = a[None]
+    return a[..., :3].astype(np.float32) / 255.0
+
+
+def side_by_side(target, fit, *, gain: float = 1.0, separator: int = 2) -> np.ndarray:
+    """Frames showing target | fit | |target - fit| * gain side by side.
+
+    Args:
+      target, fit: images (H, W, C) or videos (T, H, W, C) of the same shape, float in [0, 1].
+      gain: brightens the difference panel (clipped to [0, 1]).
+      separator: width in pixels of the white lines between panels (>= 0).
+    Returns:
+      float32 (..., H, 3 W + 2 separator, C).
+    """
+    t = np.asarray(target, dtype=np.float32)
+    f = np.asarray(fit, dtype=np.float32)
+    if t.shape != f.shape:
+        raise ValueError(f"side_by_side: target shape {t.shape} != fit shape {f.shape}")
+    if t.ndim not in (3, 4):
+        raise ValueError(f"side_by_side: expected (H, W, C) or (T, H, W, C), got {t.shape}")
+    if separator < 0:
+        raise ValueError(f"separator={separator} must be >= 0")
+    diff = np.clip(np.abs(t - f) * gain, 0.0, 1.0)
+    if t.shape[-1] == 4:  # keep the difference panel opaque
+        diff[..., 3] = 1.0
+    sep = np.ones(t.shape[:-2] + (separator, t.shape[-1]), np.float32)
+    return np.concatenate([t, sep, f, sep, diff], axis=-2)
+
+
+def to_jsonable(obj: Any) -> Any:
+    """numpy/JAX arrays and scalars, Paths, dataclass-free containers -> plain JSON values.
+
+    Non-finite floats become None (JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, (str, bool)) or obj is None:
+        return obj
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if hasattr(obj, "shape") and hasattr(obj, "dtype"):  # numpy or jax array / numpy scalar
+        a = np.asarray(obj)
+        if a.dtype == np.bool_:
+            return a.tolist()
+        if np.issubdtype(a.dtype, np.integer):
+            return a.tolist()
+        if a.ndim == 0:
+            return to_jsonable(float(a))
+        return [to_jsonable(v) for v in a]
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    raise TypeError(f"cannot convert {type(obj).__name__} to JSON")
+
+
+def save_json(path, obj) -> Path:
+    """Write `obj` (dicts/lists of numbers, strings, arrays) as indented JSON. Returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
+    return path
+
+
+def load_json(path) -> Any:
+    """Read a JSON file."""
+    return json.loads(Path(path).read_text())
+
+
+def _natural_key(p: Path):
+    return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", p.name)]
+
+
+def load_image_sequence(folder, pattern: str = "*.png") -> np.ndarray:
+    """Read a folder of frames (natural order: frame_2 before frame_10) into float32 (T, H, W, C).
+
+    Raises ValueError when the folder is missing or empty, or the frames differ in size.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"target image folder {str(folder)!r} does not exist")
+    files = sorted((p for p in folder.glob(pattern) if p.is_file()), key=_natural_key)
+    if not files:
+        raise ValueError(f"no files matching {pattern!r} in {str(folder)!r}")
+    frames = [load_image(p) for p in files]
+    shapes = [f.shape for f in frames]
+    common = max(set(shapes), key=shapes.count)
+    odd = [f"{p.name}: {s}" for p, s in zip(files, shapes, strict=True) if s != common]
+    if odd:
+        raise ValueError(
+            f"frames in {str(folder)!r} differ in size: most are {common}, but "
+            + ", ".join(odd[:6])
+            + (" ..." if len(odd) > 6 else "")
+        )
+    return np.stack(frames)
+
+
+def save_image_sequence(folder, video, prefix: str = "frame_") -> list[Path]:
+    """Write a video (T, H, W, C) as PNGs folder/prefix0000.png, ...; returns the paths."""
+    v = _check_video(video)
+    folder = Path(folder)
+    return [save_png(folder / f"{prefix}{i:04d}.png", frame) for i, frame in enumerate(v)]
