@@ -56,7 +56,7 @@ def test_bezier_is_bernstein_and_interpolates_every_third_point():
 def test_bezier_and_clamped_surfaces_pass_through_net_corners():
     net = jnp.asarray(RNG.normal(size=(7, 4, 3)))
     for basis in ("bezier", "clamped"):
-        s = tessellate(net, 3, basis)
+        s = _tess3(net, basis)
         vr, vc = s.grid_shape
         grid = s.positions.reshape(vr, vc, 3)
         for (i, j), (a, b) in zip(
@@ -67,7 +67,7 @@ def test_bezier_and_clamped_surfaces_pass_through_net_corners():
 
 def test_uniform_bspline_does_not_interpolate():
     net = jnp.asarray(RNG.normal(size=(5, 5, 3)))
-    s = tessellate(net, 3)
+    s = _tess3(net)
     assert np.abs(np.asarray(s.positions[0]) - np.asarray(net[0, 0])).max() > 1e-3
 
 
@@ -106,8 +106,12 @@ def test_continuity_across_seams_on_random_nets(basis, n, smooth):
 
 
 @functools.partial(jax.jit, static_argnames="basis")
+def _tess3(net, basis="bspline"):
+    return tessellate(net, 3, basis)
+
+
 def _positions(net, basis):
-    return tessellate(net, 3, basis).positions
+    return _tess3(net, basis).positions
 
 
 @settings(max_examples=8, deadline=None)

@@ -147,3 +147,14 @@ def test_collide_surface_updates_frames_consistently(draped, mode):
         interior[1:-1, 1:-1] = True
         deep = pushed & interior.ravel()
         assert np.abs(np.sum(n[deep] * out[deep], 1)).mean() > 0.9
+
+
+def test_float32_strict_promotion(draped):
+    s, sphere = draped
+    s32 = jax.tree_util.tree_map(
+        lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, s
+    )
+    sph32 = Sphere(sphere.center.astype(jnp.float32), sphere.radius.astype(jnp.float32))
+    with jax.numpy_dtype_promotion("strict"):
+        c = jax.jit(collide_surface)(s32, sph32)
+    assert c.positions.dtype == c.normals.dtype == c.tangents.dtype == jnp.float32

@@ -90,3 +90,11 @@ def test_bad_arguments_raise():
     s = wavy(flat_net(), 0.0, 0.0, level=2)
     with pytest.raises(ValueError, match="height must have shape"):
         displace_along_normals(s, jnp.zeros(3))
+
+
+def test_float32_strict_promotion():
+    net = flat_net().astype(jnp.float32)
+    with jax.numpy_dtype_promotion("strict"):
+        s = jax.jit(lambda n: wavy.__wrapped__(n, 0.1, 0.02, level=2))(net)
+        h = jax.jit(lambda p: ripples(p, 0.1, amplitude=0.1, wavelength=0.2))(s.uv)
+    assert s.positions.dtype == s.normals.dtype == h.dtype == jnp.float32

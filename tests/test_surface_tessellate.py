@@ -189,5 +189,5 @@ def test_bad_bezier_net_bad_basis_bad_shape():
 
 def test_vmap_over_frames():
     nets = jnp.stack([wavy_net(seed=5), wavy_net(seed=6)])
-    pos = jax.vmap(lambda n: tessellate(n, 3).positions)(nets)
+    pos = jax.jit(jax.vmap(lambda n: tessellate(n, 3).positions))(nets)
     np.testing.assert_allclose(pos[1], tess(nets[1]).positions, atol=1e-12)
