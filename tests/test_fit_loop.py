@@ -91,6 +91,32 @@ def test_one_compile_for_repeated_fits(decay_fit):
     assert r.iterations == 5
 
 
+def blob_loss_args(p, target):
+    TRACES["blob_args"] = TRACES.get("blob_args", 0) + 1
+    return pyramid_loss(blob(p["width"]), target, num_levels=3)
+
+
+def test_loss_args_are_traced_not_baked_in():
+    kw = dict(steps=200, learning_rate=0.05, patience=None, progress=False)
+    r1 = fit_params(
+        blob_loss_args, {"width": 6.0}, {"width": "positive"}, loss_args=(blob(2.0),), **kw
+    )
+    r2 = fit_params(
+        blob_loss_args, {"width": 6.0}, {"width": "positive"}, loss_args=(blob(4.0),), **kw
+    )
+    assert TRACES["blob_args"] == 1  # a new target of the same shape: no recompilation
+    assert abs(float(r1.params["width"]) - 2.0) < 1e-2
+    assert abs(float(r2.params["width"]) - 4.0) < 1e-2
+    m = fit_multistart(
+        blob_loss_args,
+        [{"width": 1.5}, {"width": 6.0}],
+        {"width": "positive"},
+        loss_args=(blob(4.0),),
+        **kw,
+    )
+    assert abs(float(m.params["width"]) - 4.0) < 1e-2
+
+
 def test_recovers_blob_width_from_image():
     r = fit_params(
         blob_loss,

@@ -156,7 +156,7 @@ def identifiability(
         def fn(z):
             return jnp.ravel(residual_fn(unravel(z)))
 
-    jac = np.asarray(jax.jacfwd(fn)(flat), dtype=float)  # (m, n)
+    jac = np.asarray(jax.jit(jax.jacfwd(fn))(flat), dtype=float)  # (m, n), one compile
     if not np.all(np.isfinite(jac)):
         raise ValueError("the Jacobian of residual_fn at params is not finite")
     fisher = jac.T @ jac / noise_sigma**2

@@ -148,11 +148,11 @@ def default_optimizer(learning_rate: float = 0.05, clip_norm: float = 1.0):
     return optax.chain(optax.clip_by_global_norm(clip_norm), optax.adam(learning_rate))
 
 
-def _step_impl(loss_fn, cons_items, optimizer, raw, opt_state, active):
+def _step_impl(loss_fn, cons_items, optimizer, raw, opt_state, active, args):
     cons = dict(cons_items)
 
     def raw_loss(r):
-        return loss_fn(to_physical(r, cons))
+        return loss_fn(to_physical(r, cons), *args)
 
     phys = to_physical(raw, cons)
     loss, grads = jax.value_and_grad(raw_loss)(raw)
@@ -177,16 +177,18 @@ def _step_impl(loss_fn, cons_items, optimizer, raw, opt_state, active):
 
 _step = jax.jit(_step_impl, static_argnums=(0, 1, 2))
 _step_batched = jax.jit(
-    lambda f, c, o, raw, st, act: jax.vmap(functools.partial(_step_impl, f, c, o))(raw, st, act),
+    lambda f, c, o, raw, st, act, args: jax.vmap(
+        functools.partial(_step_impl, f, c, o), in_axes=(0, 0, 0, None)
+    )(raw, st, act, args),
     static_argnums=(0, 1, 2),
 )
 
 
 def _as_float(v) -> jax.Array:
+    """A float array with a strong (not weak) dtype, so the first and later steps share a trace."""
     a = jnp.asarray(v)
-    if not jnp.issubdtype(a.dtype, jnp.floating):
-        a = a.astype(jnp.result_type(float))
-    return a
+    dtype = a.dtype if jnp.issubdtype(a.dtype, jnp.floating) else jnp.result_type(float)
+    return jnp.array(a, dtype=dtype)
 
 
 def _check_init(init: Mapping[str, Any], what: str = "init") -> dict[str, jax.Array]:
@@ -410,6 +412,7 @@ def _run(
     checkpoint_path,
     checkpoint_every,
     desc,
+    loss_args,
 ):
     _check_stopping(steps, tol, patience, loss_tol)
     names = list(init_phys)
@@ -421,12 +424,12 @@ def _run(
         opt_state = jax.vmap(opt.init)(raw)
 
         def step(r, s, a):
-            return _step_batched(loss_fn, cons_items, opt, r, s, jnp.asarray(a))
+            return _step_batched(loss_fn, cons_items, opt, r, s, jnp.asarray(a), loss_args)
     else:
         opt_state = opt.init(raw)
 
         def step(r, s, a):
-            return _step(loss_fn, cons_items, opt, r, s, jnp.asarray(a[0]))
+            return _step(loss_fn, cons_items, opt, r, s, jnp.asarray(a[0]), loss_args)
 
     def host(x):  # add the batch axis on the host for a single fit
         x = np.asarray(x)
@@ -543,7 +546,7 @@ def _postfix(bar, tr, phys, batched):
 
 
 def fit_params(
-    loss_fn: Callable[[dict[str, jax.Array]], jax.Array],
+    loss_fn: Callable[..., jax.Array],
     init: Mapping[str, Any],
     constraints: Mapping | None = None,
     *,
@@ -558,6 +561,7 @@ def fit_params(
     callback: Callable[[int, dict], Any] | None = None,
     checkpoint_path: str | Path | None = None,
     checkpoint_every: int | None = None,
+    loss_args: tuple = (),
 ) -> FitResult:
     """Minimise `loss_fn(physical_params)` over the named parameters with optax.
 
@@ -581,6 +585,9 @@ def fit_params(
         each step; a truthy return value stops the fit ("stopped").
       checkpoint_path: .npz file (+ .json sidecar) written at the end, on a non-finite stop and
         every `checkpoint_every` steps: raw, physical, best and last finite params, optimizer state.
+      loss_args: extra arguments, `loss_fn(params, *loss_args)`: pytrees of arrays such as the
+        target video, passed to the jitted step as arguments (not baked in as constants, so a
+        new target of the same shape does not recompile).
     Returns:
       FitResult. On a non-finite loss or gradient at step k the fit stops, status "nonfinite",
       message "non-finite loss/grad at step k (...); last finite params saved to ...", and
@@ -604,6 +611,7 @@ def fit_params(
         callback=callback,
         checkpoint_path=checkpoint_path,
         checkpoint_every=checkpoint_every,
+        loss_args=tuple(loss_args),
         desc="fit",
     )
     return results[0]
@@ -638,7 +646,7 @@ def _stack_inits(inits) -> tuple[dict[str, jax.Array], int]:
 
 
 def fit_multistart(
-    loss_fn: Callable[[dict[str, jax.Array]], jax.Array],
+    loss_fn: Callable[..., jax.Array],
     inits,
     constraints: Mapping | None = None,
     *,
@@ -653,15 +661,16 @@ def fit_multistart(
     callback: Callable[[int, dict], Any] | None = None,
     checkpoint_path: str | Path | None = None,
     checkpoint_every: int | None = None,
+    loss_args: tuple = (),
 ) -> MultiStartResult:
     """Fit several initial guesses at once (`jax.vmap` over the raw parameters); keep the best.
 
     Args:
       inits: a list of dicts (same names and shapes) or a dict of arrays stacked on a leading axis.
-      Everything else as in `fit_params`; the callback receives per-start arrays. Each start has
-      its own finite flag and stopping state: a start whose loss or gradient becomes non-finite is
-      frozen at its last finite parameters (status "nonfinite") and the others carry on unchanged.
-      The checkpoint holds the best start.
+      Everything else as in `fit_params`; `loss_args` are shared by all starts; the callback
+      receives per-start arrays. Each start has its own finite flag and stopping state: a start
+      whose loss or gradient becomes non-finite is frozen at its last finite parameters (status
+      "nonfinite") and the others carry on unchanged. The checkpoint holds the best start.
     Returns:
       MultiStartResult: `.results` (one FitResult per start), `.best_index`, `.best`, `.params`.
     """
@@ -683,6 +692,7 @@ def fit_multistart(
         callback=callback,
         checkpoint_path=checkpoint_path,
         checkpoint_every=checkpoint_every,
+        loss_args=tuple(loss_args),
         desc=f"fit x{n}",
     )
     losses = np.array([r.loss if np.isfinite(r.loss) else np.inf for r in results])
