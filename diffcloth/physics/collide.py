@@ -1,0 +1,154 @@
+"""Colliders acting on control-net points: spheres and planes, with Coulomb friction.
+
+After every substep each free point that lies inside a collider is projected onto its surface, the
+approaching normal component of its velocity (relative to the collider) is removed, and the tangential
+part is reduced by friction * (removed normal speed), Coulomb style. So no control point ends a step
+inside a collider. A point exactly at a sphere's centre is pushed out along +y.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from diffcloth._math import safe_div
+from diffcloth.physics.forces import _direction_planar, _dot
+from diffcloth.shapes import Plane, Sphere
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Colliders:
+    """Batched colliders for one frame, or for every frame with a leading frame axis.
+
+    Attributes:
+      spheres: Sphere with center (n, 3) and radius (n,), m ((T, n, 3), (T, n) per frame).
+      sphere_velocity: (n, 3) m/s, the spheres' velocity during the step ((T, n, 3) per frame).
+      planes: Plane with normal (m, 3) (unit) and offset (m,) ((T, m, 3), (T, m) per frame).
+
+    Within a step, a sphere moves from `center` at velocity `sphere_velocity`: at the end of substep
+    s (0-based) its centre is center + sphere_velocity * (s + 1) * h. Planes are fixed during a step.
+    """
+
+    spheres: Sphere
+    sphere_velocity: jax.Array
+    planes: Plane
+
+    @property
+    def num_spheres(self) -> int:
+        return self.spheres.radius.shape[-1]
+
+    @property
+    def num_planes(self) -> int:
+        return self.planes.offset.shape[-1]
+
+
+def make_colliders(spheres=(), planes=(), *, sphere_velocity=None, dtype=None) -> Colliders:
+    """Collect Sphere/Plane objects (single or batched) into one Colliders record (no frame axis)."""
+    dtype = dtype or jnp.zeros(()).dtype
+    if isinstance(spheres, Sphere):
+        spheres = [spheres]
+    if isinstance(planes, Plane):
+        planes = [planes]
+    sb = [s.batched() for s in spheres]
+    pb = [p.batched() for p in planes]
+    for s in sb:
+        if not bool(jnp.all(s.radius >= 0)):
+            raise ValueError(f"sphere radius must be >= 0 (allowed range [0, inf)), got {s.radius}")
+    centers = jnp.concatenate([s.center for s in sb], 0) if sb else jnp.zeros((0, 3), dtype)
+    radii = jnp.concatenate([s.radius for s in sb], 0) if sb else jnp.zeros((0,), dtype)
+    normals = jnp.concatenate([p.normal for p in pb], 0) if pb else jnp.zeros((0, 3), dtype)
+    offsets = jnp.concatenate([p.offset for p in pb], 0) if pb else jnp.zeros((0,), dtype)
+    if sphere_velocity is None:
+        sphere_velocity = jnp.zeros_like(centers)
+    sphere_velocity = jnp.asarray(sphere_velocity, centers.dtype).reshape(centers.shape)
+    return Colliders(Sphere(centers, radii), sphere_velocity, Plane(normals, offsets))
+
+
+def as_colliders(obj, dtype=None) -> Colliders | None:
+    """None, a Colliders, a Sphere, a Plane, or a list/tuple of them -> Colliders (or None)."""
+    if obj is None or isinstance(obj, Colliders):
+        return obj
+    if isinstance(obj, Sphere | Plane):
+        obj = [obj]
+    spheres = [o for o in obj if isinstance(o, Sphere)]
+    planes = [o for o in obj if isinstance(o, Plane)]
+    if len(spheres) + len(planes) != len(obj):
+        raise TypeError(f"colliders: expected Sphere/Plane objects, got {[type(o) for o in obj]}")
+    return make_colliders(spheres, planes, dtype=dtype)
+
+
+def collide(
+    x, v, mass, free, colliders: Colliders, friction, margin, sphere_shift=0.0, x_prev=None, h=None
+):
+    """Project points out of every collider and apply friction to their velocities.
+
+    Works on planar arrays (3, rows, cols) (see `forces.to_planar`); `collide_points` is the
+    (rows, cols, 3) form.
+
+    Args:
+      x, v: (3, rows, cols) positions (m) and velocities (m/s) after an unconstrained substep.
+      mass: (rows, cols) kg, only used for the contact impulses.
+      free: (rows, cols) bool, False for pinned points (left untouched).
+      colliders: one frame's Colliders (no frame axis).
+      friction: () Coulomb coefficient. margin: () m added to every collider.
+      sphere_shift: () s, time since the start of the step (sphere centres move by velocity * shift).
+      x_prev, h: optional positions before the substep and the substep length (s). When given, a
+        projected point's velocity is first reset to its actual displacement over the substep,
+        (x_projected - x_prev) / h (position-based style), so large substeps inject less energy.
+    Returns:
+      (x, v, sphere_impulse (n, 3), plane_impulse (m, 3)): impulses in N s that the colliders gave
+      to the cloth in this substep (apply the opposite to a rigid body for two-way coupling).
+    """
+    sphere_imp = []
+    for k in range(colliders.num_spheres):
+        vel = colliders.sphere_velocity[k][:, None, None]
+        c = colliders.spheres.center[k][:, None, None] + vel * sphere_shift
+        r = colliders.spheres.radius[k] + margin
+        dist, nrm = _direction_planar(x - c)
+        inside = (dist < r) & free
+        x = jnp.where(inside[None], c + r * nrm, x)
+        v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
+        v_new = _contact_velocity(v_in, vel, nrm, inside, friction)
+        sphere_imp.append(jnp.sum(mass[None] * (v_new - v), axis=(1, 2)))
+        v = v_new
+    plane_imp = []
+    for k in range(colliders.num_planes):
+        nrm = colliders.planes.normal[k][:, None, None]
+        s = _dot(x, nrm) - colliders.planes.offset[k] - margin
+        inside = (s < 0) & free
+        x = jnp.where(inside[None], x - s[None] * nrm, x)
+        v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
+        v_new = _contact_velocity(v_in, jnp.zeros_like(nrm), nrm, inside, friction)
+        plane_imp.append(jnp.sum(mass[None] * (v_new - v), axis=(1, 2)))
+        v = v_new
+    zeros = jnp.zeros((0, 3), x.dtype)
+    si = jnp.stack(sphere_imp) if sphere_imp else zeros
+    pi = jnp.stack(plane_imp) if plane_imp else zeros
+    return x, v, si, pi
+
+
+def collide_points(x, v, colliders, friction, margin=0.0, *, mass=None, free=None):
+    """`collide` on (rows, cols, 3) arrays: returns (x, v) with every free point outside."""
+    colliders = as_colliders(colliders, dtype=x.dtype)
+    shape = x.shape[:-1]
+    mass = jnp.ones(shape, x.dtype) if mass is None else mass
+    free = jnp.ones(shape, bool) if free is None else free
+    xp, vp, _, _ = collide(
+        jnp.moveaxis(x, -1, 0), jnp.moveaxis(v, -1, 0), mass, free, colliders, friction, margin
+    )
+    return jnp.moveaxis(xp, 0, -1), jnp.moveaxis(vp, 0, -1)
+
+
+def _contact_velocity(v, vel, nrm, inside, friction):
+    u = v - vel
+    un = _dot(u, nrm)
+    approach = inside & (un < 0)
+    dvn = jnp.where(approach, -un, 0.0)
+    ut = u - un[None] * nrm
+    ut_len, _ = _direction_planar(ut)
+    scale = jnp.maximum(1.0 - safe_div(friction * dvn, ut_len), 0.0)
+    u_new = jnp.where(approach[None], ut * scale[None], u)
+    return vel + u_new

@@ -1,0 +1,250 @@
+"""Rollouts over frames (lax.scan, checkpointed frame body), stability checks and an eager wrapper."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import checkify
+
+from diffcloth.physics.collide import Colliders, as_colliders
+from diffcloth.physics.forces import max_node_stiffness, node_mass
+from diffcloth.physics.integrate import step
+from diffcloth.physics.material import Material, validate_material
+from diffcloth.physics.net import Net
+from diffcloth.physics.state import ClothState, SimSettings, validate_state
+
+#: positions further than this from the rest net (m) count as blown up.
+BLOWUP_DISTANCE = 1e5
+
+ADVICE = "lower dt, raise num_substeps, or use the implicit integrator"
+
+
+class StabilityWarning(UserWarning):
+    """The time step is above the explicit integrator's stability estimate."""
+
+
+class UnstableSimulationError(RuntimeError):
+    """The trajectory became non-finite or blew up."""
+
+
+def _frame_colliders(colliders: Colliders, dt, num_frames: int):
+    """Per-frame Colliders (leading T axis, pose at the end of each frame) -> start poses + velocity.
+
+    Leaves without a frame axis (e.g. fixed planes next to moving spheres) are broadcast over frames.
+    """
+    T = num_frames
+    c = colliders.spheres.center
+    c = c if c.ndim == 3 else jnp.broadcast_to(c[None], (T,) + c.shape)
+    r = colliders.spheres.radius
+    r = r if r.ndim == 2 else jnp.broadcast_to(r[None], (T,) + r.shape)
+    pn, po = colliders.planes.normal, colliders.planes.offset
+    pn = pn if pn.ndim == 3 else jnp.broadcast_to(pn[None], (T,) + pn.shape)
+    po = po if po.ndim == 2 else jnp.broadcast_to(po[None], (T,) + po.shape)
+    for name, a in (("sphere centres", c), ("sphere radii", r), ("plane normals", pn)):
+        if a.shape[0] != T:
+            raise ValueError(
+                f"colliders: per-frame {name} have {a.shape[0]} frames, expected num_frames={T}"
+            )
+    prev = jnp.concatenate([c[:1], c[:-1]], axis=0)
+    vel = (c - prev) / dt
+    return Colliders(
+        spheres=type(colliders.spheres)(prev, r),
+        sphere_velocity=vel,
+        planes=type(colliders.planes)(pn, po),
+    )
+
+
+def is_per_frame(colliders: Colliders | None) -> bool:
+    """True when the collider arrays carry a leading frame axis."""
+    return colliders is not None and (
+        colliders.spheres.center.ndim == 3 or colliders.planes.normal.ndim == 3
+    )
+
+
+def rollout(
+    net: Net,
+    sim: SimSettings,
+    material: Material,
+    state: ClothState,
+    *,
+    num_frames: int,
+    colliders=None,
+    pin_path=None,
+    debug: bool = False,
+) -> ClothState:
+    """Simulate `num_frames` frames; return the trajectory (frames, rows, cols, 3) for x and v.
+
+    Frame k of the trajectory is the state after k + 1 steps (the initial state is not included).
+    The frame body is `jax.checkpoint`-ed, so the memory of a gradient grows with the number of
+    frames only by one state per frame.
+
+    Args:
+      net, sim: fixed structure and settings (sim.integrator picks the integrator).
+      material: differentiable Material.
+      state: initial ClothState.
+      num_frames: static number of frames (>= 0; 0 gives an empty trajectory).
+      colliders: None, Sphere/Plane (or a list of them), or Colliders. Colliders whose sphere
+        centres are (num_frames, n, 3) (and planes (num_frames, m, 3)/(num_frames, m)) move: entry k
+        is the pose at the end of frame k; sphere velocities come from finite differences.
+      pin_path: optional (num_frames, rows, cols, 3): where pinned points are at the end of each frame.
+      debug: add `checkify` checks that every frame is finite; wrap the caller in
+        `jax.experimental.checkify.checkify` to collect them (as `simulate(debug=True)` does).
+
+    >>> net = grid_net(4, 4, (0.3, 0.3), pinned="top_row")     # doctest: +SKIP
+    >>> traj = rollout(net, make_sim(), make_material(), rest_state(net), num_frames=10)  # doctest: +SKIP
+    """
+    if isinstance(num_frames, bool) or not isinstance(num_frames, int | np.integer):
+        raise TypeError(f"num_frames: must be an int, got {num_frames!r}")
+    if num_frames < 0:
+        raise ValueError(f"num_frames: must be >= 0 (allowed range [0, inf)), got {num_frames}")
+    colliders = as_colliders(colliders, dtype=state.x.dtype)
+    moving = is_per_frame(colliders)
+    if moving:
+        colliders = _frame_colliders(colliders, sim.dt, num_frames)
+    if pin_path is not None and tuple(pin_path.shape) != (num_frames, net.rows, net.cols, 3):
+        raise ValueError(
+            f"pin_path: expected shape ({num_frames}, {net.rows}, {net.cols}, 3), got {pin_path.shape}"
+        )
+
+    def body(carry, xs):
+        frame_colliders, target = xs
+        if not moving:
+            frame_colliders = colliders
+        new = step(net, sim, material, carry, frame_colliders, pin_target=target)
+        if debug:
+            checkify.check(
+                jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v)),
+                f"physics: non-finite cloth state ({ADVICE})",
+            )
+        return new, new
+
+    xs = (colliders if moving else None, pin_path)
+    _, traj = jax.lax.scan(jax.checkpoint(body), state, xs, length=num_frames)
+    return traj
+
+
+def advance(net, sim, material, state, *, num_frames: int, colliders=None) -> ClothState:
+    """The state after `num_frames` frames (num_frames = 0 returns `state` unchanged)."""
+    if num_frames == 0:
+        return state
+    traj = rollout(net, sim, material, state, num_frames=num_frames, colliders=colliders)
+    return jax.tree_util.tree_map(lambda a: a[-1], traj)
+
+
+def stable_substep(net: Net, sim: SimSettings, material: Material) -> float:
+    """Largest substep (s) the explicit integrator tolerates, estimated eagerly.
+
+    Uses the Gershgorin bound k_max on the stiffness matrix, the lightest free node m_min and the
+    spring damping d: h_max = sqrt(d^2 + 4 m_min / k_max) - d, which is 2 sqrt(m_min / k_max) for
+    d = 0. Conservative (k_max overestimates the stiffest mode by up to about 2x). inf if no node is free.
+    """
+    mass = np.asarray(node_mass(net, material))
+    free = ~np.asarray(net.pinned)
+    if not free.any():
+        return math.inf
+    m_min = float(mass[free].min())
+    k_max = max_node_stiffness(net, material)
+    d = float(np.asarray(material.damping))
+    return math.sqrt(d * d + 4.0 * m_min / k_max) - d
+
+
+def check_stability(
+    net: Net, sim: SimSettings, material: Material, *, error: bool = False
+) -> float:
+    """Warn (or raise ValueError when `error`) if the explicit substep exceeds `stable_substep`.
+
+    Returns the estimate (s). Nothing is checked for the implicit integrator.
+    """
+    h_max = stable_substep(net, sim, material)
+    if sim.integrator != "symplectic":
+        return h_max
+    h = float(np.asarray(sim.dt)) / sim.num_substeps
+    if h > h_max:
+        need = math.ceil(float(np.asarray(sim.dt)) / h_max)
+        msg = (
+            f"unstable time step: substep dt/num_substeps = {h:.3g} s exceeds the explicit stability "
+            f"estimate {h_max:.3g} s (2*sqrt(m_min/k_max)); {ADVICE} "
+            f"(e.g. num_substeps >= {need})"
+        )
+        if error:
+            raise ValueError(msg)
+        warnings.warn(msg, StabilityWarning, stacklevel=2)
+    return h_max
+
+
+def trajectory_ok(net: Net, traj: ClothState):
+    """Per-trajectory status flag (a bool array, usable under jit and vmap): finite and not blown up."""
+    finite = jnp.all(jnp.isfinite(traj.x)) & jnp.all(jnp.isfinite(traj.v))
+    dist = jnp.max(jnp.abs(jnp.where(jnp.isfinite(traj.x), traj.x, 0.0) - net.rest[None]))
+    return finite & (dist < BLOWUP_DISTANCE)
+
+
+_JITTED = {}
+
+
+def _jitted_rollout(num_frames: int, debug: bool):
+    key = (num_frames, debug)
+    if key not in _JITTED:
+        fn = jax.jit(
+            lambda net, sim, material, state, colliders, pin_path: rollout(
+                net,
+                sim,
+                material,
+                state,
+                num_frames=num_frames,
+                colliders=colliders,
+                pin_path=pin_path,
+                debug=debug,
+            )
+        )
+        _JITTED[key] = checkify.checkify(fn) if debug else fn
+    return _JITTED[key]
+
+
+def simulate(
+    net: Net,
+    sim: SimSettings,
+    material: Material,
+    state: ClothState,
+    *,
+    num_frames: int,
+    colliders=None,
+    pin_path=None,
+    debug: bool = False,
+) -> ClothState:
+    """Eager, checked `rollout`: validates inputs, warns on a too-large step, raises on blow-up.
+
+    Raises:
+      ValueError: non-finite initial state, bad material values.
+      UnstableSimulationError: the trajectory became non-finite or left the 1e5 m box; the message
+        says "unstable: lower dt, raise num_substeps, or use the implicit integrator".
+    """
+    validate_state(net, state)
+    validate_material(material)
+    check_stability(net, sim, material)
+    colliders = as_colliders(colliders, dtype=state.x.dtype)
+    fn = _jitted_rollout(int(num_frames), debug)
+    if debug:
+        err, traj = fn(net, sim, material, state, colliders, pin_path)
+        err.throw()
+    else:
+        traj = fn(net, sim, material, state, colliders, pin_path)
+    if not bool(trajectory_ok(net, traj)):
+        x = np.asarray(traj.x)
+        bad = ~np.all(np.isfinite(x), axis=(1, 2, 3)) | (
+            np.nanmax(
+                np.abs(np.nan_to_num(x, nan=np.inf) - np.asarray(net.rest)[None]), axis=(1, 2, 3)
+            )
+            >= BLOWUP_DISTANCE
+        )
+        first = int(np.argmax(bad)) if bad.any() else num_frames - 1
+        raise UnstableSimulationError(
+            f"unstable: the cloth state became non-finite or blew up at frame {first}; {ADVICE} "
+            f"(substep {float(np.asarray(sim.dt)) / sim.num_substeps:.3g} s, explicit estimate "
+            f"{stable_substep(net, sim, material):.3g} s)"
+        )
+    return traj

@@ -1,0 +1,139 @@
+"""Evolving state (ClothState) and fixed simulation settings (SimSettings)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+INTEGRATORS = ("symplectic", "implicit")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ClothState:
+    """Positions x (rows, cols, 3) in m and velocities v (rows, cols, 3) in m/s.
+
+    A trajectory is a ClothState whose leaves carry a leading frame axis: (frames, rows, cols, 3).
+    """
+
+    x: jax.Array
+    v: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SimSettings:
+    """How the cloth is stepped. Fixed for a run; arrays follow the run's dtype.
+
+    Attributes:
+      dt: () seconds per frame (one rendered frame = num_substeps substeps).
+      gravity: (3,) m/s^2, y up.
+      wind: (3,) m/s, the air velocity the drag acts relative to.
+      collision_margin: () m, colliders are inflated by this much (cloth thickness).
+      num_substeps: static, substeps per frame.
+      integrator: static, "symplectic" (explicit symplectic Euler) or "implicit" (backward Euler,
+        Newton + conjugate gradients).
+      newton_iters, cg_iters: static, iterations of the implicit solver.
+      cg_tol: static, relative tolerance of the CG and of the gradient's linear solve.
+    """
+
+    dt: jax.Array
+    gravity: jax.Array
+    wind: jax.Array
+    collision_margin: jax.Array
+    num_substeps: int = dataclasses.field(default=16, metadata={"static": True})
+    integrator: str = dataclasses.field(default="symplectic", metadata={"static": True})
+    newton_iters: int = dataclasses.field(default=3, metadata={"static": True})
+    cg_iters: int = dataclasses.field(default=60, metadata={"static": True})
+    cg_tol: float = dataclasses.field(default=1e-6, metadata={"static": True})
+
+    @property
+    def h(self):
+        """Substep length in s."""
+        return self.dt / self.num_substeps
+
+
+def _check_int(name: str, value, lo: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise TypeError(f"{name}: must be an int, got {value!r}")
+    if value < lo:
+        raise ValueError(f"{name}: must be >= {lo} (allowed range [{lo}, inf)), got {value}")
+    return int(value)
+
+
+def _check_vec3(name: str, value) -> np.ndarray:
+    arr = np.asarray(value, np.float64)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: must be a finite 3-vector, got {np.asarray(value).tolist()}")
+    return arr
+
+
+def make_sim(
+    dt: float = 1.0 / 30.0,
+    *,
+    gravity=(0.0, -9.81, 0.0),
+    wind=(0.0, 0.0, 0.0),
+    num_substeps: int = 16,
+    integrator: str = "symplectic",
+    collision_margin: float = 0.0,
+    newton_iters: int = 3,
+    cg_iters: int = 60,
+    cg_tol: float = 1e-6,
+    dtype=None,
+) -> SimSettings:
+    """Validated constructor for SimSettings (see its attributes).
+
+    Raises ValueError for dt <= 0 or non-finite, num_substeps < 1, an unknown integrator, and
+    TypeError for non-integer counts.
+    """
+    dt_f = float(np.asarray(dt, np.float64))
+    if not math.isfinite(dt_f) or dt_f <= 0:
+        raise ValueError(f"dt: must be finite and > 0 s (allowed range (0, inf)), got {dt!r}")
+    _check_int("num_substeps", num_substeps, 1)
+    _check_int("newton_iters", newton_iters, 1)
+    _check_int("cg_iters", cg_iters, 1)
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"integrator: must be one of {INTEGRATORS}, got {integrator!r}")
+    margin = float(collision_margin)
+    if not math.isfinite(margin) or margin < 0:
+        raise ValueError(f"collision_margin: must be in [0, inf) m, got {collision_margin!r}")
+    if not (0 < cg_tol < 1):
+        raise ValueError(f"cg_tol: must be in (0, 1), got {cg_tol!r}")
+    dtype = dtype or jnp.zeros(()).dtype
+    return SimSettings(
+        dt=jnp.asarray(dt_f, dtype),
+        gravity=jnp.asarray(_check_vec3("gravity", gravity), dtype),
+        wind=jnp.asarray(_check_vec3("wind", wind), dtype),
+        collision_margin=jnp.asarray(margin, dtype),
+        num_substeps=int(num_substeps),
+        integrator=integrator,
+        newton_iters=int(newton_iters),
+        cg_iters=int(cg_iters),
+        cg_tol=float(cg_tol),
+    )
+
+
+def rest_state(net, velocity=None) -> ClothState:
+    """The net at rest: x = net.rest, v = 0 (or a uniform (3,) velocity in m/s)."""
+    v = jnp.zeros_like(net.rest)
+    if velocity is not None:
+        v = v + jnp.asarray(velocity, net.rest.dtype)[None, None, :]
+    return ClothState(x=net.rest, v=v)
+
+
+def validate_state(net, state: ClothState) -> ClothState:
+    """Eager check of a concrete state: shapes match the net and every value is finite."""
+    for name in ("x", "v"):
+        arr = np.asarray(getattr(state, name))
+        if arr.shape != (net.rows, net.cols, 3):
+            raise ValueError(
+                f"state.{name}: expected shape ({net.rows}, {net.cols}, 3), got {arr.shape}"
+            )
+        if not np.all(np.isfinite(arr)):
+            bad = np.argwhere(~np.isfinite(arr))[0].tolist()
+            raise ValueError(f"state.{name}: must be finite, found {arr[tuple(bad)]} at {bad}")
+    return state
