@@ -8,31 +8,38 @@ import pytest
 
 from diffcloth.render import textures as T
 
+# jit once per module: eager op-by-op dispatch dominates small tests
+sample_2d = jax.jit(T.sample_2d, static_argnames="wrap")
+sample_mip = jax.jit(T.sample_mip, static_argnames="wrap")
+sample_cube = jax.jit(T.sample_cube)
+sample_latlong = jax.jit(T.sample_latlong)
+uv_lod = jax.jit(T.uv_lod, static_argnums=2)
+
 
 def test_sample_2d_texel_centres_and_midpoints():
     tex = jnp.arange(12.0).reshape(3, 4, 1)
     i, j = np.meshgrid(np.arange(3), np.arange(4), indexing="ij")
     uv = jnp.stack([(j + 0.5) / 4, (i + 0.5) / 3], -1)
-    np.testing.assert_allclose(T.sample_2d(tex, uv)[..., 0], tex[..., 0], atol=1e-12)
-    mid = T.sample_2d(tex, jnp.array([1.0 / 4, 1.0 / 3]))  # between texels (0,0),(0,1),(1,0),(1,1)
+    np.testing.assert_allclose(sample_2d(tex, uv)[..., 0], tex[..., 0], atol=1e-12)
+    mid = sample_2d(tex, jnp.array([1.0 / 4, 1.0 / 3]))  # between texels (0,0),(0,1),(1,0),(1,1)
     np.testing.assert_allclose(mid[0], (0 + 1 + 4 + 5) / 4, atol=1e-12)
 
 
 def test_sample_2d_wrap_and_clamp():
     tex = jnp.array([[[0.0], [10.0]]])  # 1 x 2
     left_edge = jnp.array([0.0, 0.5])  # halfway between texel 1 (wrapped) and texel 0
-    assert float(T.sample_2d(tex, left_edge, wrap="repeat")[0]) == pytest.approx(5.0)
-    assert float(T.sample_2d(tex, left_edge, wrap="clamp")[0]) == pytest.approx(0.0)
+    assert float(sample_2d(tex, left_edge, wrap="repeat")[0]) == pytest.approx(5.0)
+    assert float(sample_2d(tex, left_edge, wrap="clamp")[0]) == pytest.approx(0.0)
     # repeat is periodic
     uv = jnp.array([0.3, 0.5])
-    np.testing.assert_allclose(T.sample_2d(tex, uv), T.sample_2d(tex, uv + jnp.array([2.0, -1.0])))
+    np.testing.assert_allclose(sample_2d(tex, uv), sample_2d(tex, uv + jnp.array([2.0, -1.0])))
     with pytest.raises(ValueError, match="wrap"):
-        T.sample_2d(tex, uv, wrap="mirror")
+        sample_2d(tex, uv, wrap="mirror")
 
 
 def test_sample_2d_float32_stays_float32():
     tex = jnp.ones((4, 4, 3), jnp.float32)
-    assert T.sample_2d(tex, jnp.full((5, 2), 0.3, jnp.float32)).dtype == jnp.float32
+    assert sample_2d(tex, jnp.full((5, 2), 0.3, jnp.float32)).dtype == jnp.float32
 
 
 def test_mip_pyramid_and_lod():
@@ -41,16 +48,16 @@ def test_mip_pyramid_and_lod():
     assert [p.shape[0] for p in pyr] == [16, 8, 4, 2, 1]
     np.testing.assert_allclose(pyr[1][..., :3], 0.5, atol=1e-12)  # box filter of a 1-texel checker
     uv = jnp.full((3, 2), 0.37)
-    np.testing.assert_allclose(T.sample_mip(pyr, uv, jnp.full(3, 2.0))[..., :3], 0.5, atol=1e-12)
-    np.testing.assert_allclose(T.sample_mip(pyr, uv, jnp.zeros(3)), T.sample_2d(tex, uv), atol=1e-12)
+    np.testing.assert_allclose(sample_mip(pyr, uv, jnp.full(3, 2.0))[..., :3], 0.5, atol=1e-12)
+    np.testing.assert_allclose(sample_mip(pyr, uv, jnp.zeros(3)), sample_2d(tex, uv), atol=1e-12)
     # uv footprint: neighbouring pixels 4 texels apart -> lod 2
     H = W = 8
     i, j = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
     uv_img = jnp.stack([j * 4.0 / 16, i * 4.0 / 16], -1)
-    lod = T.uv_lod(uv_img, jnp.ones((H, W)), tex.shape)
+    lod = uv_lod(uv_img, jnp.ones((H, W)), tex.shape)
     np.testing.assert_allclose(lod, 2.0, atol=1e-12)
     # a fine uv gradient (less than one texel per pixel) -> lod 0
-    np.testing.assert_allclose(T.uv_lod(uv_img / 8, jnp.ones((H, W)), tex.shape), 0.0, atol=1e-12)
+    np.testing.assert_allclose(uv_lod(uv_img / 8, jnp.ones((H, W)), tex.shape), 0.0, atol=1e-12)
 
 
 def test_mip_reduces_aliasing_of_minified_checker():
@@ -59,9 +66,9 @@ def test_mip_reduces_aliasing_of_minified_checker():
     H = W = 16  # 4 texels per pixel: point-ish bilinear sampling aliases, mip gives ~grey
     i, j = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
     uv = jnp.stack([(j + 0.3) / W, (i + 0.3) / H], -1)
-    lod = T.uv_lod(uv, jnp.ones((H, W)), tex.shape)
-    plain = T.sample_2d(tex, uv)[..., 0]
-    filtered = T.sample_mip(pyr, uv, lod)[..., 0]
+    lod = uv_lod(uv, jnp.ones((H, W)), tex.shape)
+    plain = sample_2d(tex, uv)[..., 0]
+    filtered = sample_mip(pyr, uv, lod)[..., 0]
     # aliasing: the plain lookup is far from the true mean 0.5 (here a uniform moire)
     assert float(jnp.std(plain)) > 0.3 or abs(float(jnp.mean(plain)) - 0.5) > 0.3
     assert float(jnp.std(filtered)) < 0.05
@@ -76,13 +83,13 @@ def _direction_cube(size):
 def test_cube_map_faces_and_seamless():
     cube = _direction_cube(16)
     centres = jnp.asarray(np.concatenate([np.eye(3), -np.eye(3)])[[0, 3, 1, 4, 2, 5]])
-    np.testing.assert_allclose(T.sample_cube(cube, centres), 0.5 + 0.5 * centres, atol=0.01)
+    np.testing.assert_allclose(sample_cube(cube, centres), 0.5 + 0.5 * centres, atol=0.01)
     # everywhere, edges and corners included, the lookup tracks the smooth function 0.5 + 0.5 d
     d = np.random.default_rng(0).normal(size=(4000, 3))
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     edge = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0], [0.0, -1.0, 1.0], [-1.0, 0.0, -1.0]])
     d = np.concatenate([d, edge / np.linalg.norm(edge, axis=-1, keepdims=True)])
-    err = np.abs(np.asarray(T.sample_cube(cube, jnp.asarray(d))) - (0.5 + 0.5 * d))
+    err = np.abs(np.asarray(sample_cube(cube, jnp.asarray(d))) - (0.5 + 0.5 * d))
     assert err.max() < 0.06  # ~ one texel of a 16-texel face
 
 
@@ -92,7 +99,7 @@ def test_cube_map_continuous_across_edges():
     # a great circle crossing +z -> +x -> -z -> -x, in tiny steps: no jumps at the face edges
     a = np.linspace(0, 2 * np.pi, 20001)
     d = np.stack([np.sin(a), 0.3 * np.ones_like(a), np.cos(a)], -1)
-    vals = np.asarray(T.sample_cube(cube, jnp.asarray(d)))
+    vals = np.asarray(sample_cube(cube, jnp.asarray(d)))
     assert np.abs(np.diff(vals, axis=0)).max() < 0.02
 
 
@@ -100,23 +107,25 @@ def test_cube_map_poles_and_zero_direction_row24():
     cube = _direction_cube(8)
     for d in ([0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 0.0]):
         d = jnp.asarray(d)
-        val = T.sample_cube(cube, d)
-        g = jax.jacrev(lambda x: T.sample_cube(cube, x).sum())(d)
+        val = sample_cube(cube, d)
+        g = jax.jacrev(lambda x: sample_cube(cube, x).sum())(d)
         assert jnp.all(jnp.isfinite(val)) and jnp.all(jnp.isfinite(g))
     # the zero direction looks up +y (safe normalize fallback)
-    np.testing.assert_allclose(T.sample_cube(cube, jnp.zeros(3)), T.sample_cube(cube, jnp.array([0.0, 1, 0])))
+    np.testing.assert_allclose(
+        sample_cube(cube, jnp.zeros(3)), sample_cube(cube, jnp.array([0.0, 1, 0]))
+    )
     tex = jnp.asarray(np.random.default_rng(2).uniform(size=(8, 16, 3)))
     for d in ([0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 0.0]):
         d = jnp.asarray(d)
-        g = jax.jacrev(lambda x: T.sample_latlong(tex, x).sum())(d)
-        assert jnp.all(jnp.isfinite(T.sample_latlong(tex, d))) and jnp.all(jnp.isfinite(g))
+        g = jax.jacrev(lambda x: sample_latlong(tex, x).sum())(d)
+        assert jnp.all(jnp.isfinite(sample_latlong(tex, d))) and jnp.all(jnp.isfinite(g))
 
 
 def test_latlong_known_directions():
     tex = jnp.asarray(np.random.default_rng(3).uniform(size=(8, 16, 1)))
     # -z is the centre column (u = 0.5); the equator is v = 0.5
-    v = T.sample_latlong(tex, jnp.array([0.0, 0.0, -1.0]))
-    np.testing.assert_allclose(v, T.sample_2d(tex, jnp.array([0.5, 0.5]), wrap=("repeat", "clamp")))
+    v = sample_latlong(tex, jnp.array([0.0, 0.0, -1.0]))
+    np.testing.assert_allclose(v, sample_2d(tex, jnp.array([0.5, 0.5]), wrap=("repeat", "clamp")))
 
 
 def test_cube_map_validation():
@@ -142,7 +151,7 @@ def test_procedural_textures():
     np.testing.assert_array_equal(n1, n2)
     assert float(jnp.std(n1)) > 0.01
     sky = T.sky_cube_map(8)
-    up, down = T.sample_cube(sky, jnp.array([0.0, 1, 0])), T.sample_cube(sky, jnp.array([0.0, -1, 0]))
+    up, down = sample_cube(sky, jnp.array([0.0, 1, 0])), sample_cube(sky, jnp.array([0.0, -1, 0]))
     assert float(up[2]) > float(up[0])  # blue zenith
     assert float(down.sum()) < float(up.sum())  # darker ground
     np.testing.assert_allclose(T.minnaert_table(1.0, 8), 1.0)

@@ -132,7 +132,7 @@ def light_vectors(lights: Lights, positions: jax.Array) -> tuple[jax.Array, jax.
       positions: (..., 3) world positions in m.
     Returns:
       (L, radiance): L (..., nl, 3) unit vectors from the point toward each light and radiance
-      (..., nl, 3) coloured intensity, with nl = nd + np (directional lights first). Finite values and
+      (..., nl, 3) coloured intensity, nl = nd + np (directional lights first). Finite values and
       gradients even for a point light exactly at a position (direction falls back to +y).
     """
     batch = positions.shape[:-1]

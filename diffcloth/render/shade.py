@@ -1,7 +1,7 @@
 """Deferred shading of per-pixel G-buffers: every lighting mode of the seed (Wloka slides 8-23).
 
 Shading is independent of rasterization: a rasterizer (or an analytic construction, see
-`gbuffer_quad` / `gbuffer_sphere`) fills a `ShadingBuffer`; `shade` turns it into an (H, W, 4) image.
+`gbuffer_quad` / `gbuffer_sphere`) fills a `ShadingBuffer`; `shade` makes an (H, W, 4) image.
 All parameters (lights, appearance, textures, spheres, eye) are differentiable arrays; the mode is a
 static string.
 
@@ -98,7 +98,7 @@ def view_vectors(eye, positions):
     """Unit vectors E from each position toward the eye.
 
     Args:
-      eye: (3,) eye position in m, or (4,) homogeneous (x, y, z, w): w = 1 a point, w = 0 a direction
+      eye: (3,) eye position (m), or (4,) homogeneous (x, y, z, w): w = 1 a point, w = 0 a direction
         toward the viewer (orthographic / parallel projection).
       positions: (..., 3) world positions.
     Returns:
@@ -191,7 +191,7 @@ def minnaert_factor(nl, ne, k):
 
 def tbn_frame(normal, tangent, bitangent):
     """Orthonormal (T, B, N): N normalised, T Gram-Schmidt against N, B = +-(N x T) on the side of
-    the given bitangent (the seed computes bi-normal = normal x tangent). Degenerate inputs fall back
+    the given bitangent (the seed: bi-normal = normal x tangent). Degenerate inputs fall back
     to +y directions; always finite."""
     n = safe_normalize(normal)
     t = safe_normalize(tangent - _dot(tangent, n)[..., None] * n)
@@ -257,7 +257,7 @@ def trace_spheres(origins, directions, spheres: Sphere, lights: Lights, appearan
     blend = (
         appearance.sphere_reflectivity
         / (1.0 + appearance.sphere_distance_falloff * t)
-        * safe_pow(rim, appearance.sphere_rim_power)
+        * safe_pow(rim, appearance.sphere_rim_power, 1e-12)
     )
     return color, jnp.where(any_hit, blend, 0.0)
 
@@ -306,12 +306,13 @@ def shade(
                     else generated from minnaert_k; differentiable w.r.t. k).
         "blinn_bump_reflection"  reflectance * env(R(N')), blended with the sphere trace if spheres.
         "second_pass"  first pass as above; second pass specular + a * albedo * texture rgb, with
-                    a = second_pass_alpha * texture alpha, alpha-blended over: first (1 - a) + second.
+                    a = second_pass_alpha * texture alpha, blended over: first (1 - a) + second.
         "sphere_reflection"  per-pixel Phong cloth blended with the lit sphere hit of the reflected
                     eye ray (blend from `trace_spheres`); requires spheres.
-        "reflect_refract"  reflectance * ((1 - b) refl + b env(R')) + specular, refl = env(R) blended
-                    with the sphere trace, R' the shortened-normal refraction (refraction_s) or Snell
-                    with appearance.ior (refraction="snell", total internal reflection -> mirror).
+        "reflect_refract"  reflectance * ((1 - b) refl + b env(R')) + specular; refl = env(R)
+                    blended with the sphere trace, R' the shortened-normal refraction
+                    (refraction_s) or Snell with appearance.ior (refraction="snell"; total internal
+                    reflection falls back to the mirror direction).
       textures: colour / bump / environment / Minnaert textures; environment lookups fall back to
         a procedural sky when textures.env is None; colour and bump are optional.
       spheres: analytic spheres seen in reflections.

@@ -1,11 +1,11 @@
-"""Textures: bilinear / mip-mapped 2-D sampling, seamless cube maps, procedural fabric and sky, files.
+"""Textures: bilinear and mip-mapped sampling, seamless cube maps, procedural fabric and sky, files.
 
 Conventions
 - A 2-D texture is an array (h, w, c). Texture coordinates (u, v) in [0, 1]: u runs along columns
   (left to right), v along rows (v = 0 is row 0, the top of the image). Texel (row i, column j) has
   its centre at u = (j + 0.5) / w, v = (i + 0.5) / h.
 - A cube map holds six square faces in OpenGL order +x, -x, +y, -y, +z, -z with OpenGL's
-  (sc, tc, ma) face parameterisation (row 0 = t = 0). Faces are stored with a one-texel border copied
+  (sc, tc, ma) face parameterisation (row 0 = t = 0). Faces are stored with a one-texel border from
   from the neighbouring faces, so bilinear filtering is seamless across edges.
 - All sampling functions are differentiable w.r.t. the texel values and the coordinates
   (piecewise-linear in the coordinates) and work in float32 and float64.
@@ -181,13 +181,14 @@ def face_directions(size: int, *, border: int = 0) -> np.ndarray:
 
 
 def _face_coords(d):
-    """Face index and (s, t) in [0, 1] for unit directions d (..., 3)."""
-    face = jnp.argmax(jnp.abs(d), axis=-1)  # ties go to the first axis
-    face = 2 * face + (jnp.take_along_axis(d, face[..., None], axis=-1)[..., 0] < 0)
-    sc = jnp.sum(jnp.asarray(_FACE_SC, d.dtype)[face] * d, axis=-1)
-    tc = jnp.sum(jnp.asarray(_FACE_TC, d.dtype)[face] * d, axis=-1)
-    ma = jnp.sum(jnp.asarray(_FACE_MA, d.dtype)[face] * d, axis=-1)  # > 0, >= 1/sqrt(3)
-    ma = jnp.maximum(ma, 1e-6)
+    """Face index and (s, t) in [0, 1] for unit directions d (..., 3) (numpy or jax arrays)."""
+    xp = np if isinstance(d, np.ndarray) else jnp
+    face = xp.argmax(xp.abs(d), axis=-1)  # ties go to the first axis
+    face = 2 * face + (xp.take_along_axis(d, face[..., None], axis=-1)[..., 0] < 0)
+    sc = xp.sum(xp.asarray(_FACE_SC, d.dtype)[face] * d, axis=-1)
+    tc = xp.sum(xp.asarray(_FACE_TC, d.dtype)[face] * d, axis=-1)
+    ma = xp.sum(xp.asarray(_FACE_MA, d.dtype)[face] * d, axis=-1)  # > 0, >= 1/sqrt(3)
+    ma = xp.maximum(ma, 1e-6)
     return face, 0.5 * (sc / ma + 1.0), 0.5 * (tc / ma + 1.0)
 
 
@@ -196,18 +197,18 @@ def make_cube_map(faces) -> CubeMap:
 
     Raises ValueError for a wrong shape or non-finite texels.
     """
-    faces = jnp.asarray(faces)
+    dtype = faces.dtype if hasattr(faces, "dtype") and faces.dtype.kind == "f" else None
+    faces = np.asarray(faces)
     if faces.ndim != 4 or faces.shape[0] != 6 or faces.shape[1] != faces.shape[2]:
         raise ValueError(f"cube map faces must have shape (6, s, s, c), got {faces.shape}")
     validate_texture(faces, "cube map faces")
     size = faces.shape[1]
-    dirs = face_directions(size, border=1)
-    face, s, t = _face_coords(jnp.asarray(dirs, faces.dtype))
-    col = jnp.clip(jnp.floor(s * size), 0, size - 1).astype(jnp.int32)
-    row = jnp.clip(jnp.floor(t * size), 0, size - 1).astype(jnp.int32)
+    face, s, t = _face_coords(face_directions(size, border=1))
+    col = np.clip(np.floor(s * size), 0, size - 1).astype(np.int32)
+    row = np.clip(np.floor(t * size), 0, size - 1).astype(np.int32)
     padded = faces[face, row, col]
-    padded = padded.at[:, 1:-1, 1:-1].set(faces)
-    return CubeMap(padded)
+    padded[:, 1:-1, 1:-1] = faces
+    return CubeMap(jnp.asarray(padded, dtype or jnp.zeros(()).dtype))
 
 
 def sample_cube(cube: CubeMap, directions):
@@ -336,7 +337,7 @@ def sky_cube_map(
     sun = sun / np.linalg.norm(sun)
     glow = np.clip(d @ sun, 0, 1)[..., None] ** sun_sharpness
     rgb = rgb + glow * np.asarray(sun_color)
-    return make_cube_map(jnp.asarray(rgb, dtype or jnp.zeros(()).dtype))
+    return make_cube_map(np.asarray(rgb, dtype or jnp.zeros(()).dtype))
 
 
 def minnaert_table(k, size: int = 32):
@@ -410,7 +411,8 @@ def load_cube_map(paths, *, srgb: bool = False, dtype=None) -> CubeMap:
         raise ValueError(
             f"load_cube_map needs 6 face files (+x, -x, +y, -y, +z, -z), got {len(paths)}"
         )
-    return make_cube_map(jnp.stack([load_texture(p, srgb=srgb, dtype=dtype) for p in paths]))
+    faces = np.stack([np.asarray(load_texture(p, srgb=srgb, dtype=dtype)) for p in paths])
+    return make_cube_map(faces)
 
 
 # ----------------------------------------------------------------------------- texture set
@@ -418,10 +420,11 @@ def load_cube_map(paths, *, srgb: bool = False, dtype=None) -> CubeMap:
 
 def height_slopes(height):
     """Per-texel central-difference slopes (dh/du, dh/dv) of a tiling height map: (h, w, 2)."""
+    xp = np if isinstance(height, np.ndarray) else jnp
     h = height[..., 0]
-    du = 0.5 * (jnp.roll(h, -1, axis=1) - jnp.roll(h, 1, axis=1))
-    dv = 0.5 * (jnp.roll(h, -1, axis=0) - jnp.roll(h, 1, axis=0))
-    return jnp.stack([du, dv], axis=-1)
+    du = 0.5 * (xp.roll(h, -1, axis=1) - xp.roll(h, 1, axis=1))
+    dv = 0.5 * (xp.roll(h, -1, axis=0) - xp.roll(h, 1, axis=0))
+    return xp.stack([du, dv], axis=-1)
 
 
 @jax.tree_util.register_dataclass
@@ -459,7 +462,7 @@ def make_textures(
 
     Args:
       color: (h, w, 3 or 4) colour texture (alpha 1 is appended to RGB).
-      height: (h, w, 1) or (h, w) height map in [0, 1] (converted to slopes; an all-zero map is flat).
+      height: (h, w, 1) or (h, w) height map in [0, 1] (stored as slopes; all-zero is flat).
       env: CubeMap or six (s, s, 3) faces.
       minnaert: (n, n) or (n, n, 1) custom F table.
       tiling: repeats of the colour / bump textures across the surface's uv range.
@@ -472,22 +475,22 @@ def make_textures(
     c = b = e = m = None
     if color is not None:
         validate_texture(color, "color texture")
-        c = jnp.asarray(color, dtype)
+        c = np.asarray(color, np.float64)
         if c.ndim != 3 or c.shape[-1] not in (3, 4):
             raise ValueError(f"color texture must have shape (h, w, 3|4), got {c.shape}")
         if c.shape[-1] == 3:
-            c = jnp.concatenate([c, jnp.ones((*c.shape[:2], 1), dtype)], axis=-1)
-        c = mip_pyramid(c, levels)
+            c = np.concatenate([c, np.ones((*c.shape[:2], 1))], axis=-1)
+        c = tuple(jnp.asarray(level, dtype) for level in mip_pyramid(c, levels))
     if height is not None:
         validate_texture(height, "height texture")
-        h = jnp.asarray(height, dtype)
+        h = np.asarray(height, np.float64)
         if h.ndim == 2:
             h = h[..., None]
         if h.ndim != 3 or h.shape[-1] != 1:
             raise ValueError(f"height texture must have shape (h, w) or (h, w, 1), got {h.shape}")
-        b = mip_pyramid(height_slopes(h), levels)
+        b = tuple(jnp.asarray(level, dtype) for level in mip_pyramid(height_slopes(h), levels))
     if env is not None:
-        e = env if isinstance(env, CubeMap) else make_cube_map(jnp.asarray(env, dtype))
+        e = env if isinstance(env, CubeMap) else make_cube_map(np.asarray(env, dtype))
     if minnaert is not None:
         validate_texture(minnaert, "minnaert table")
         m = jnp.asarray(minnaert, dtype)
@@ -502,12 +505,12 @@ def make_textures(
 def default_textures(
     *, size: int = 128, threads: int = 16, tiling=(4.0, 4.0), dtype=None
 ) -> Textures:
-    """Default cloth look without files: tinted weave colour, weave bump, procedural sky cube map."""
+    """Default cloth look, no files: tinted weave colour, weave bump, procedural sky cube map."""
     dtype = dtype or jnp.zeros(()).dtype
-    h = weave_height(size, threads, dtype=dtype)
-    stripes = checker(size, 2, (1.0, 1.0, 1.0), (0.8, 0.85, 1.0), dtype=dtype)
-    color = stripes.at[..., :3].multiply(0.75 + 0.25 * h)
-    color = color.at[..., 3].set(0.4 + 0.6 * h[..., 0])
+    h = np.asarray(weave_height(size, threads, dtype=np.float64))
+    color = np.array(checker(size, 2, (1.0, 1.0, 1.0), (0.8, 0.85, 1.0), dtype=np.float64))
+    color[..., :3] *= 0.75 + 0.25 * h
+    color[..., 3] = 0.4 + 0.6 * h[..., 0]
     return make_textures(
         color=color, height=h, env=sky_cube_map(32, dtype=dtype), tiling=tiling, dtype=dtype
     )
