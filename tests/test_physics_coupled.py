@@ -126,3 +126,18 @@ def test_body_colliders_and_validation():
         coupled.coupled_rollout(NET_HANG, SIMG, MAT, state, (BALL,), num_frames=0)
     with pytest.raises(TypeError, match="bodies"):
         coupled.coupled_rollout(NET_HANG, SIMG, MAT, state, (object(),), num_frames=1)
+
+
+def test_ball_into_cloth_config_bodies():
+    import pathlib
+    import tomllib
+
+    path = pathlib.Path(__file__).parents[1] / "configs" / "ball_into_cloth.toml"
+    cfg = tomllib.loads(path.read_text())
+    (ball,) = rigid.bodies_from_config(cfg["bodies"])
+    assert ball.shape == "sphere"
+    np.testing.assert_allclose(ball.mass, 0.15)
+    assert float(ball.velocity[2]) < 0  # thrown towards the cloth at z = 0
+    bad = [dict(cfg["bodies"][0], mass=0.0)]
+    with pytest.raises(ValueError, match=r"bodies\[0\].*mass"):
+        rigid.bodies_from_config(bad)
