@@ -100,6 +100,7 @@ def test_hanging_cloth_ball_no_point_inside_and_one_way_matches_rigid():
     assert float(jnp.min(cloth.x[-1, ..., 2])) < -0.02
 
 
+@pytest.mark.slow
 def test_gradient_of_ball_position_wrt_mass():
     state = physics.rest_state(NET_HANG)
     sim = physics.make_sim(1 / 60, num_substeps=4, gravity=(0.0, -9.81, 0.0))
