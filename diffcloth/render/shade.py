@@ -99,12 +99,16 @@ def view_vectors(eye, positions):
 
     Args:
       eye: (3,) eye position (m), or (4,) homogeneous (x, y, z, w): w = 1 a point, w = 0 a direction
-        toward the viewer (orthographic / parallel projection).
+        toward the viewer (orthographic / parallel projection), or an array shaped like
+        `positions` (e.g. (H, W, 3)): per-pixel vectors toward the viewer (minus the pixel rays;
+        right for every projection, oblique included).
       positions: (..., 3) world positions.
     Returns:
       (..., 3) unit vectors (a zero vector falls back to +y).
     """
     eye = jnp.asarray(eye)
+    if eye.ndim > 1 and eye.shape == positions.shape:
+        return safe_normalize(eye)
     if eye.shape == (3,):
         return safe_normalize(_bc(eye, positions) - positions)
     if eye.shape == (4,):

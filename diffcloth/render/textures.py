@@ -264,13 +264,17 @@ def weave_height(size: int = 64, threads: int = 8, *, dtype=None):
     Returns:
       (size, size, 1); tiles seamlessly (use wrap="repeat").
     """
+    return jnp.asarray(_weave_np(size, threads), dtype or jnp.zeros(()).dtype)
+
+
+def _weave_np(size, threads):
     u, v = _grid(size)
     a = np.abs(np.sin(np.pi * threads * u))  # warp threads: ridges across u
     b = np.abs(np.sin(np.pi * threads * v))  # weft threads: ridges across v
     over = np.sin(np.pi * threads * u) * np.sin(np.pi * threads * v) > 0
     h = np.where(over, a * (0.55 + 0.45 * b), b * (0.55 + 0.45 * a))
     h = (h - h.min()) / max(h.max() - h.min(), 1e-12)
-    return jnp.asarray(h[..., None], dtype or jnp.zeros(()).dtype)
+    return h[..., None]
 
 
 def checker(
@@ -282,11 +286,15 @@ def checker(
     dtype=None,
 ):
     """RGBA checkerboard with `squares` squares per side, alpha 1. Returns (size, size, 4)."""
+    rgba = _checker_np(size, squares, color0, color1)
+    return jnp.asarray(rgba, dtype or jnp.zeros(()).dtype)
+
+
+def _checker_np(size, squares, color0, color1):
     u, v = _grid(size)
     odd = (np.floor(u * squares) + np.floor(v * squares)) % 2 == 1
     rgb = np.where(odd[..., None], np.asarray(color1, float), np.asarray(color0, float))
-    rgba = np.concatenate([rgb, np.ones((size, size, 1))], axis=-1)
-    return jnp.asarray(rgba, dtype or jnp.zeros(()).dtype)
+    return np.concatenate([rgb, np.ones((size, size, 1))], axis=-1)
 
 
 def value_noise(key, size: int = 64, *, cells: int = 4, octaves: int = 4, dtype=None):
@@ -507,8 +515,8 @@ def default_textures(
 ) -> Textures:
     """Default cloth look, no files: tinted weave colour, weave bump, procedural sky cube map."""
     dtype = dtype or jnp.zeros(()).dtype
-    h = np.asarray(weave_height(size, threads, dtype=np.float64))
-    color = np.array(checker(size, 2, (1.0, 1.0, 1.0), (0.8, 0.85, 1.0), dtype=np.float64))
+    h = _weave_np(size, threads)
+    color = _checker_np(size, 2, (1.0, 1.0, 1.0), (0.8, 0.85, 1.0))
     color[..., :3] *= 0.75 + 0.25 * h
     color[..., 3] = 0.4 + 0.6 * h[..., 0]
     return make_textures(
