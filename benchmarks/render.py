@@ -1,0 +1,90 @@
+"""Rasterizer benchmark: the seed's 130 x 91 = 11,830-vertex cloth surface (23,040 triangles).
+
+Visibility + interpolation of an RGB colour + silhouette antialiasing, forward and forward +
+backward (gradient of an image loss w.r.t. vertex positions and colours), at 256 and 512.
+Prints one JSON line per case: bench, size, triangles, forward_ms, grad_ms (medians).
+
+    python benchmarks/render.py [--sizes 256 512] [--repeats 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffcloth.render.camera import make_camera
+from diffcloth.render.raster import edge_neighbors, render_mesh
+
+
+def seed_cloth(rows: int = 91, cols: int = 130):
+    """A draped, wavy 1.3 m x 0.91 m cloth grid: positions (rows*cols, 3), faces, colours."""
+    u, v = np.meshgrid(np.linspace(0, 1, cols), np.linspace(0, 1, rows))
+    x = (u - 0.5) * 1.3
+    z = (v - 0.5) * 0.91
+    y = 0.08 * np.sin(6 * u) * np.cos(5 * v) - 0.25 * (x**2 + z**2)
+    pos = np.stack([x, y, z], -1).reshape(-1, 3)
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    faces = np.concatenate([np.stack([a, c, b], -1), np.stack([b, c, d], -1)]).reshape(-1, 3)
+    colors = np.stack([u, v, 0.5 + 0 * u], -1).reshape(-1, 3)
+    return pos.astype(np.float32), faces.astype(np.int32), colors.astype(np.float32)
+
+
+def _median_ms(fn, *args, repeats: int):
+    jax.block_until_ready(fn(*args))  # compile
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def main(sizes=(256, 512), repeats: int = 7):
+    pos, faces, colors = seed_cloth()
+    pos, faces, colors = jnp.asarray(pos), jnp.asarray(faces), jnp.asarray(colors)
+    nbr = edge_neighbors(np.asarray(faces))
+    for size in sizes:
+        cam = make_camera((0.0, 1.1, 1.5), (0.0, -0.1, 0.0), (0.0, 1.0, 0.0), width=size, height=size)
+
+        @jax.jit
+        def forward(p, c, cam=cam):
+            return render_mesh(p, faces, cam, c, neighbors=nbr)
+
+        target = forward(pos + 0.01, colors * 0.9)
+
+        @jax.jit
+        def grad(p, c, cam=cam):
+            loss = lambda p, c: jnp.mean((render_mesh(p, faces, cam, c, neighbors=nbr) - target) ** 2)
+            return jax.grad(loss, argnums=(0, 1))(p, c)
+
+        f_ms = _median_ms(forward, pos, colors, repeats=repeats)
+        g_ms = _median_ms(grad, pos, colors, repeats=repeats)
+        cover = float(forward(pos, colors)[..., 3].mean())
+        print(
+            json.dumps(
+                {
+                    "bench": "render_mesh_cloth",
+                    "size": size,
+                    "triangles": int(faces.shape[0]),
+                    "forward_ms": round(f_ms, 2),
+                    "grad_ms": round(g_ms, 2),
+                    "coverage": round(cover, 3),
+                    "backend": jax.default_backend(),
+                }
+            ),
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
+    ap.add_argument("--repeats", type=int, default=7)
+    a = ap.parse_args()
+    main(tuple(a.sizes), a.repeats)

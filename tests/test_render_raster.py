@@ -1,0 +1,290 @@
+"""Rasterizer: analytic images, interpolation, silhouette/occlusion gradients vs finite differences,
+and ROBUSTNESS rows 18 (zero-area), 19 (near plane / behind camera) and 21 (empty scene)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffcloth.render import camera as C
+from diffcloth.render import raster as R
+
+SIZE = 32
+QUAD_FACES = jnp.array([[0, 1, 2], [0, 2, 3]])
+
+
+def pixel_camera(size=SIZE):
+    """Orthographic camera where one world unit is one pixel, x in [-16, 16], looking down -z."""
+    view = C.look_at((0.0, 0.0, 5.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    h = size / 2
+    proj = C.orthographic(-h, h, -h, h, 0.1, 10.0)
+    return C.camera_from_matrices(view, proj, width=size, height=size, near=0.1, far=10.0, kind="orthographic")
+
+
+def persp_camera(size=SIZE):
+    return C.make_camera((0.3, 0.2, 4.0), (0.0, 0.0, 0.0), (0, 1, 0), width=size, height=size, fov_y=40.0)
+
+
+def quad(x0, x1, y0, y1, z=0.0):
+    return jnp.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
+
+
+@jax.jit
+def render(positions, faces, colors, camera):
+    return R.render_mesh(positions, faces, camera, colors)
+
+
+@jax.jit
+def render_hard(positions, faces, colors, camera):
+    return R.render_mesh(positions, faces, camera, colors, antialiased=False)
+
+
+WHITE = jnp.ones((4, 3))
+
+
+def test_pixel_aligned_square_exact_count():
+    pos = quad(-4.0, 6.0, -3.0, 5.0)
+    hard = render_hard(pos, QUAD_FACES, WHITE, pixel_camera())
+    assert int((hard[..., 3] > 0).sum()) == 80
+    soft = render(pos, QUAD_FACES, WHITE, pixel_camera())
+    np.testing.assert_allclose(float(soft[..., 3].sum()), 80.0, atol=1e-9)
+    # exactly the expected pixels: columns 12..21, rows 11..18
+    want = np.zeros((SIZE, SIZE), bool)
+    want[11:19, 12:22] = True
+    np.testing.assert_array_equal(np.asarray(hard[..., 3] > 0), want)
+
+
+def test_unaligned_square_area():
+    pos = quad(-4.3, 3.4, -2.2, 5.1)
+    area = 7.7 * 7.3
+    hard = render_hard(pos, QUAD_FACES, WHITE, pixel_camera())
+    assert abs(float(hard[..., 3].sum()) - area) <= 8.0  # within one pixel row
+    soft = render(pos, QUAD_FACES, WHITE, pixel_camera())
+    assert abs(float(soft[..., 3].sum()) - area) < 0.5  # only the four corner pixels are off
+
+
+@pytest.mark.parametrize("near_first", [True, False])
+def test_overlapping_squares_show_the_nearer(near_first):
+    near = quad(-6.0, 2.0, -6.0, 2.0, z=1.0)
+    far = quad(-2.0, 6.0, -2.0, 6.0, z=0.0)
+    red, green = jnp.tile(jnp.array([1.0, 0, 0]), (4, 1)), jnp.tile(jnp.array([0, 1.0, 0]), (4, 1))
+    parts = [(near, red), (far, green)] if near_first else [(far, green), (near, red)]
+    pos = jnp.concatenate([p for p, _ in parts])
+    col = jnp.concatenate([c for _, c in parts])
+    faces = jnp.concatenate([QUAD_FACES, QUAD_FACES + 4])
+    img = np.asarray(render_hard(pos, faces, col, pixel_camera()))
+    # pixel (row 16, col 16) is centred at (0.5, -0.5): inside both -> red (near)
+    np.testing.assert_allclose(img[16, 16], [1, 0, 0, 1])
+    np.testing.assert_allclose(img[12, 20], [0, 1, 0, 1])  # (4.5, 3.5): only the far square
+    np.testing.assert_allclose(img[20, 12], [1, 0, 0, 1])  # (-3.5, -4.5): only the near square
+    np.testing.assert_allclose(img[2, 2], [0, 0, 0, 0])
+
+
+SLANTED = jnp.array([[-1.0, -1.0, 0.5], [1.2, -1.0, 0.5], [1.0, 1.0, -2.5], [-1.1, 1.0, -2.5]])
+
+
+def test_perspective_correct_interpolation():
+    cam = persp_camera()
+    frags = R.rasterize(SLANTED, QUAD_FACES, cam)
+    world = R.interpolate(SLANTED, frags, QUAD_FACES)
+    mask = np.asarray(frags.triangle_id >= 0)
+    assert mask.sum() > 100
+    o, d = C.pixel_rays(cam)
+    # perspective-correct: the interpolated world point lies on the pixel's ray
+    off = np.cross(np.asarray(world - o), np.asarray(d))
+    np.testing.assert_allclose(off[mask], 0.0, atol=1e-9)
+    # and its view depth is the fragment depth
+    _, depth = C.project(jnp.asarray(world[mask]), cam)
+    np.testing.assert_allclose(depth, np.asarray(frags.depth)[mask], rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(frags.barycentric).sum(-1)[mask], 1.0, atol=1e-12)
+
+
+def test_interior_gradients_match_finite_differences():
+    cam = persp_camera()
+    rng = np.random.default_rng(1)
+    weights = jnp.asarray(rng.uniform(size=(SIZE, SIZE, 3)))
+    colors = jnp.asarray(rng.uniform(size=(4, 3)))
+
+    def loss(pos, col):
+        frags = R.rasterize(pos, QUAD_FACES, cam)
+        return jnp.sum(weights * R.interpolate(col, frags, QUAD_FACES))
+
+    g_pos, g_col = jax.jit(jax.grad(loss, argnums=(0, 1)))(SLANTED, colors)
+    assert np.abs(g_pos).max() > 0 and np.abs(g_col).max() > 0
+    f = jax.jit(loss)
+    eps = 1e-6
+    for idx in [(0, 0), (1, 2), (2, 1), (3, 0), (2, 2)]:
+        e = jnp.zeros_like(SLANTED).at[idx].set(eps)
+        fd = (f(SLANTED + e, colors) - f(SLANTED - e, colors)) / (2 * eps)
+        np.testing.assert_allclose(g_pos[idx], fd, rtol=1e-5, atol=1e-8)
+    e = jnp.zeros_like(colors).at[2, 1].set(eps)
+    fd = (f(SLANTED, colors + e) - f(SLANTED, colors - e)) / (2 * eps)
+    np.testing.assert_allclose(g_col[2, 1], fd, rtol=1e-6)
+
+
+def _shift_loss(base, faces, colors, camera, weights, moving):
+    def loss(dx):
+        pos = base.at[:, 0].add(dx * moving)
+        return jnp.sum(weights * render(pos, faces, colors, camera))
+
+    return loss
+
+
+def _check_silhouette_gradient(loss, x0=0.0, h=0.05):
+    g = float(jax.grad(loss)(jnp.asarray(x0)))
+    fd = float((loss(jnp.asarray(x0 + h)) - loss(jnp.asarray(x0 - h))) / (2 * h))
+    assert abs(fd) > 1e-3, fd
+    assert abs(g - fd) <= 0.05 * abs(fd), (g, fd)
+    return g, fd
+
+
+@pytest.mark.parametrize("camera_fn", [pixel_camera, persp_camera])
+def test_silhouette_gradient_translating_square(camera_fn):
+    cam = camera_fn()
+    scale = 1.0 if cam.kind == "orthographic" else 0.12
+    base = quad(-30.0, 4.3, -6.2, 7.7) * scale  # left part off-screen: coverage changes with x
+    ones = jnp.ones((SIZE, SIZE, 4))
+    loss = _shift_loss(base, QUAD_FACES, WHITE, cam, ones, jnp.ones(4))
+    g, fd = _check_silhouette_gradient(loss, h=0.05 * scale)
+    if cam.kind == "orthographic":  # d(area)/dx = edge length (13.9 px) x 4 channels
+        assert abs(g / 4 - 13.9) <= 1.0
+    ramp = jnp.broadcast_to(jnp.linspace(0.0, 2.0, SIZE)[None, :, None], (SIZE, SIZE, 4))
+    _check_silhouette_gradient(_shift_loss(base, QUAD_FACES, WHITE, cam, ramp, jnp.ones(4)), h=0.05 * scale)
+
+
+def test_occlusion_edge_gradient():
+    cam = pixel_camera()
+    back = quad(-20.0, 20.0, -20.0, 20.0, z=0.0)
+    front = quad(-30.0, 3.6, -5.3, 6.4, z=1.0)
+    pos = jnp.concatenate([front, back])
+    faces = jnp.concatenate([QUAD_FACES, QUAD_FACES + 4])
+    colors = jnp.concatenate([jnp.tile(jnp.array([1.0, 0.2, 0.0]), (4, 1)), jnp.tile(jnp.array([0.0, 0.5, 1.0]), (4, 1))])
+    moving = jnp.array([1.0, 1, 1, 1, 0, 0, 0, 0])
+    weights = jnp.ones((SIZE, SIZE, 4)).at[..., 3].set(0.0)
+    g, fd = _check_silhouette_gradient(_shift_loss(pos, faces, colors, cam, weights, moving))
+    # colour difference (1.2 - 1.5) x edge length 11.7 px (rows whose centre the edge spans: 11)
+    assert abs(g / (1.2 - 1.5) - 11.7) <= 1.0
+
+
+# ROBUSTNESS row 21: empty scene -> background, finite loss, zero (not NaN) gradients
+def test_empty_scene():
+    cam = persp_camera()
+    behind = quad(-1.0, 1.0, -1.0, 1.0, z=6.0)  # behind the eye (eye at z = 4)
+    aside = quad(30.0, 31.0, -1.0, 1.0)
+    pos = jnp.concatenate([behind, aside])
+    faces = jnp.concatenate([QUAD_FACES, QUAD_FACES + 4])
+    colors = jnp.ones((8, 3))
+
+    def loss(p, c):
+        return jnp.sum((render(p, faces, c, cam) - 0.3) ** 2)
+
+    img = render(pos, faces, colors, cam)
+    np.testing.assert_array_equal(np.asarray(img), 0.0)
+    gp, gc = jax.grad(loss, argnums=(0, 1))(pos, colors)
+    assert np.isfinite(float(loss(pos, colors)))
+    np.testing.assert_array_equal(np.asarray(gp), 0.0)
+    np.testing.assert_array_equal(np.asarray(gc), 0.0)
+    none = R.render_mesh(jnp.zeros((0, 3)), jnp.zeros((0, 3), jnp.int32), cam, jnp.zeros((0, 3)))
+    np.testing.assert_array_equal(np.asarray(none), 0.0)
+
+
+# ROBUSTNESS row 18: zero-area / sliver triangles are skipped with finite gradients
+def test_zero_area_triangles():
+    cam = pixel_camera()
+    good = jnp.array([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [0.0, 5.0, 0.0]])
+    repeated = jnp.array([[1.0, 1.0, 0.5], [1.0, 1.0, 0.5], [4.0, -2.0, 0.5]])  # two equal vertices
+    collinear = jnp.array([[-8.0, 0.0, 0.7], [0.0, 0.0, 0.7], [8.0, 0.0, 0.7]])
+    edge_on = jnp.array([[-3.0, 2.0, 1.0], [-3.0, 2.0, -1.0], [3.0, 2.0, 0.0]])  # same screen XY pair
+    pos = jnp.concatenate([good, repeated, collinear, edge_on])
+    faces = jnp.arange(12).reshape(4, 3)
+    colors = jnp.tile(jnp.array([[1.0, 0.0, 0.0]]), (12, 1)).at[3:].set(jnp.array([0.0, 1.0, 0.0]))
+    img = render(pos, faces, colors, cam)
+    alone = render(good, faces[:1], colors[:3], cam)
+    assert np.all(np.isfinite(img))
+    np.testing.assert_allclose(np.asarray(img), np.asarray(alone), atol=1e-12)
+    g = jax.grad(lambda p: jnp.sum(render(p, faces, colors, cam) ** 2))(pos)
+    assert np.all(np.isfinite(g)) and np.abs(g[:3]).max() > 0
+    np.testing.assert_array_equal(np.asarray(g[3:]), 0.0)
+
+
+# ROBUSTNESS row 19: geometry straddling the near plane / behind the camera
+def test_near_plane_crossing_floor():
+    cam = C.make_camera((0.0, 0.0, 0.0), (0.0, -0.3, -1.0), (0, 1, 0), width=SIZE, height=SIZE, near=0.1, far=100.0)
+    floor = jnp.array([[-50.0, -1.0, 50.0], [50.0, -1.0, 50.0], [50.0, -1.0, -50.0], [-50.0, -1.0, -50.0]])
+    colors = jnp.ones((4, 3))
+    frags = R.rasterize(floor, QUAD_FACES, cam)
+    o, d = C.pixel_rays(cam)
+    t = (-1.0 - o[..., 1]) / jnp.where(d[..., 1] < 0, d[..., 1], -1.0)
+    hit = o + t[..., None] * d
+    want = np.asarray((d[..., 1] < 0) & (jnp.abs(hit[..., 0]) < 50) & (jnp.abs(hit[..., 2]) < 50))
+    got = np.asarray(frags.triangle_id >= 0)
+    assert want.sum() > 100 and (want != got).sum() <= SIZE  # at most the horizon row differs
+    img = render(floor, QUAD_FACES, colors, cam)
+    g = jax.grad(lambda p: jnp.sum(render(p, QUAD_FACES, colors, cam)))(floor)
+    assert np.all(np.isfinite(img)) and np.all(np.isfinite(g))
+    # a triangle with a vertex exactly at the eye and one through it: finite
+    tri = jnp.array([[0.0, 0.0, 0.0], [1.0, -1.0, -3.0], [-1.0, -1.0, 3.0]])
+    img = render(tri, jnp.array([[0, 1, 2]]), jnp.ones((3, 3)), cam)
+    g = jax.grad(lambda p: jnp.sum(render(p, jnp.array([[0, 1, 2]]), jnp.ones((3, 3)), cam)))(tri)
+    assert np.all(np.isfinite(img)) and np.all(np.isfinite(g))
+
+
+def test_camera_inside_cloth_bounding_box():
+    cam = C.make_camera((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0, 1, 0), width=SIZE, height=SIZE)
+    u, v = np.meshgrid(np.linspace(-2, 2, 9), np.linspace(-2, 2, 9))
+    pos = jnp.asarray(np.stack([u, 0.3 * np.sin(3 * u), v], -1).reshape(-1, 3))  # a wavy sheet through the eye
+    idx = np.arange(81).reshape(9, 9)
+    faces = jnp.asarray(
+        np.concatenate([np.stack([idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:]], -1), np.stack([idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]], -1)]).reshape(-1, 3)
+    )
+    img = render(pos, faces, jnp.ones((81, 3)), cam)
+    g = jax.grad(lambda p: jnp.sum(render(p, faces, jnp.ones((81, 3)), cam)))(pos)
+    assert np.all(np.isfinite(img)) and np.all(np.isfinite(g)) and float(img[..., 3].sum()) > 0
+
+
+def test_full_screen_triangle():
+    cam = persp_camera()
+    big = jnp.array([[-100.0, -100.0, 0.0], [100.0, -100.0, 0.0], [0.0, 100.0, 0.0]])
+    img = render_hard(big, jnp.array([[0, 1, 2]]), jnp.ones((3, 3)), cam)
+    assert int((img[..., 3] > 0).sum()) == SIZE * SIZE
+    two = jnp.concatenate([big, big.at[:, 2].set(-1.0)])
+    frags = R.rasterize(two, jnp.array([[0, 1, 2], [3, 4, 5]]), cam)
+    np.testing.assert_array_equal(np.asarray(frags.triangle_id), 0)  # the nearer one everywhere
+    need = int(R.required_tiles(two, jnp.array([[0, 1, 2], [3, 4, 5]]), cam))
+    assert need <= R.default_max_tiles(2, SIZE, SIZE)
+
+
+def test_gbuffer_composite_and_antialias():
+    cam = pixel_camera()
+    a = quad(-6.0, 2.0, -6.0, 2.0, z=1.0)
+    b = quad(-2.0, 6.0, -2.0, 6.0, z=0.0)
+    ga = R.rasterize_gbuffer(a, QUAD_FACES, cam, {"color": jnp.tile(jnp.array([1.0, 0, 0]), (4, 1))})
+    gb = R.rasterize_gbuffer(b, QUAD_FACES, cam, {"color": jnp.tile(jnp.array([0, 1.0, 0]), (4, 1)), "uv": jnp.ones((4, 2))})
+    g = R.composite(gb, ga)
+    assert set(g.attributes) == {"color", "uv"}
+    np.testing.assert_allclose(g.attributes["color"][16, 16], [1, 0, 0])
+    np.testing.assert_allclose(g.attributes["uv"][16, 16], [0, 0])  # a has no uv -> zeros
+    np.testing.assert_allclose(g.attributes["uv"][12, 20], [1, 1])
+    assert int(g.mask.sum()) == 64 + 64 - 16
+    out = R.antialias(jnp.concatenate([g.attributes["color"], g.mask[..., None] * 1.0], -1), g)
+    np.testing.assert_allclose(float(out[..., 3].sum()), 112.0, atol=1e-9)
+
+
+def test_vmap_over_cameras_and_float32():
+    eyes = jnp.array([[0.0, 0.0, 4.0], [0.5, 0.3, 4.0]])
+    cams = jax.vmap(lambda e: C.make_camera(e, jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]), width=16, height=16))(eyes)
+    imgs = jax.vmap(lambda c: render(SLANTED, QUAD_FACES, jnp.ones((4, 3)), c))(cams)
+    for i in range(2):
+        cam = C.make_camera(eyes[i], jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]), width=16, height=16)
+        np.testing.assert_allclose(imgs[i], render(SLANTED, QUAD_FACES, jnp.ones((4, 3)), cam), atol=1e-12)
+    f32 = C.make_camera(jnp.array([0.0, 0.0, 4.0], jnp.float32), jnp.zeros(3, jnp.float32), jnp.array([0, 1, 0], jnp.float32), width=16, height=16)
+    img = R.render_mesh(SLANTED.astype(jnp.float32), QUAD_FACES, f32, jnp.ones((4, 3), jnp.float32))
+    assert img.dtype == jnp.float32
+    np.testing.assert_allclose(img, imgs[0], atol=1e-4)
+
+
+def test_edge_neighbors():
+    faces = jnp.array([[0, 1, 2], [0, 2, 3], [2, 1, 4]])
+    want = np.array([[2, 1, -1], [-1, -1, 0], [-1, -1, 0]])
+    np.testing.assert_array_equal(np.asarray(R.edge_neighbors(faces)), want)
+    np.testing.assert_array_equal(np.asarray(jax.jit(R.edge_neighbors)(faces)), want)
