@@ -1,0 +1,106 @@
+"""Shading benchmark: every mode at 256 x 256 on the seed surface (13 x 10 net, 11,830 vertices).
+
+For each mode, one JSON line with the median wall time (ms) of
+  shade_fwd   shading a pre-rasterized G-buffer (the shading cost alone),
+  shade_grad  value and gradient of an image loss w.r.t. lights and appearance (shading only),
+  render_fwd  the full render (rasterize + shade + antialias + spheres + background),
+  render_grad value and gradient of the full render w.r.t. lights and appearance.
+Timings after one warm-up (compile) call, block_until_ready, median of --repeats runs. float32.
+
+    python benchmarks/shading.py [--size 256] [--repeats 5] [--modes phong,second_pass]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffcloth.render import lights as Lm
+from diffcloth.render import textures as T
+from diffcloth.render.camera import make_camera
+from diffcloth.render.render import render, surface_gbuffer
+from diffcloth.render.shade import MODES, shade
+from diffcloth.shapes import make_sphere
+from diffcloth.surface import tessellate
+
+
+def seed_surface():
+    """The seed's 13 x 10 control net, gently draped (sine folds), tessellated at level 13."""
+    x, z = np.meshgrid(np.linspace(-0.6, 0.6, 13), np.linspace(-0.45, 0.45, 10))
+    y = 0.25 * np.exp(-(x**2 + z**2) / 0.08) + 0.03 * np.sin(9 * x) * np.cos(5 * z)
+    return tessellate(jnp.asarray(np.stack([x, y, z], -1), jnp.float32), 13)
+
+
+def timed(fn, *args, repeats):
+    jax.block_until_ready(fn(*args))  # compile
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return round(1e3 * statistics.median(times), 2)
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--modes", default=",".join(MODES))
+    parser.add_argument("--no-render", action="store_true", help="time shading only")
+    parser.add_argument("--no-grad", action="store_true")
+    args = parser.parse_args()
+    surf = seed_surface()
+    size = args.size
+    cam = make_camera(
+        (0.9, 0.9, 1.6), (0.0, 0.0, 0.0), (0, 1, 0), width=size, height=size, fov_y=40.0
+    )
+    lights = Lm.make_lights(point=[((-1.0, 1.2, 1.0), (0.4, 0.5, 0.7), 0.8)], dtype=jnp.float32)
+    app = Lm.make_appearance(dtype=jnp.float32)
+    tex = T.default_textures(dtype=jnp.float32)
+    spheres = make_sphere([(0.0, -0.3, 0.0), (0.55, 0.0, 0.35)], [0.3, 0.18], dtype=jnp.float32)
+    weights = jnp.asarray(np.random.default_rng(0).uniform(size=(size, size, 4)), jnp.float32)
+    device = jax.devices()[0].device_kind
+    for mode in args.modes.split(","):
+        gb, _, eye = jax.jit(surface_gbuffer, static_argnames=("shading",))(
+            surf, cam, lights, app, shading=mode
+        )
+
+        def shade_fn(gb, eye, lights, app, mode=mode):
+            return shade(gb, eye, lights, app, mode=mode, textures=tex, spheres=spheres)
+
+        def shade_loss(params, gb, eye, mode=mode):
+            return jnp.sum(weights * shade_fn(gb, eye, *params, mode=mode))
+
+        def render_fn(lights, app, mode=mode):
+            return render(surf, cam, lights, mode, app, spheres=spheres, textures=tex)
+
+        def render_loss(params, mode=mode):
+            return jnp.sum(weights * render_fn(*params, mode=mode))
+
+        row = {
+            "bench": "shading",
+            "mode": mode,
+            "size": size,
+            "vertices": int(surf.positions.shape[0]),
+        }
+        row["shade_fwd_ms"] = timed(jax.jit(shade_fn), gb, eye, lights, app, repeats=args.repeats)
+        if not args.no_grad:
+            g = jax.jit(jax.value_and_grad(shade_loss))
+            row["shade_grad_ms"] = timed(g, (lights, app), gb, eye, repeats=args.repeats)
+        if not args.no_render:
+            row["render_fwd_ms"] = timed(jax.jit(render_fn), lights, app, repeats=args.repeats)
+            if not args.no_grad:
+                g = jax.jit(jax.value_and_grad(render_loss))
+                row["render_grad_ms"] = timed(g, (lights, app), repeats=args.repeats)
+        row["device"] = device
+        print(json.dumps(row), flush=True)
+
+
+if __name__ == "__main__":
+    main()

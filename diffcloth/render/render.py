@@ -1,0 +1,224 @@
+"""Render a tessellated cloth surface (plus analytic spheres) with one of the seed's shading modes.
+
+Surface --rasterize_gbuffer--> per-pixel attributes --shade--> premultiplied RGBA
+        --antialias (silhouettes)--> + ray-cast spheres (depth-composited) --> over background
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from diffcloth._math import safe_normalize
+from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
+from diffcloth.render.lights import Appearance, Lights
+from diffcloth.render.raster import antialias, rasterize_gbuffer
+from diffcloth.render.rays import ray_sphere
+from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
+from diffcloth.render.textures import Textures
+from diffcloth.shapes import Sphere
+
+
+def _face_normals(positions, faces, normals):
+    """(m, 3) unit geometric normals, oriented like the mean of the triangle's vertex normals."""
+    p = positions[faces]
+    fn = jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    side = jnp.sum(fn * jnp.sum(normals[faces], axis=1), axis=-1)
+    return safe_normalize(jnp.where((side < 0)[:, None], -fn, fn))
+
+
+def _sphere_layer(camera: Camera, spheres: Sphere, lights: Lights, appearance: Appearance):
+    """Ray-cast spheres: premultiplied RGBA (H, W, 4) with antialiased rims, and view depth (H, W).
+
+    Coverage of a pixel is clip((r - d) / footprint + 1/2, 0, 1) with d the distance from the
+    sphere centre to the pixel's ray and footprint the pixel's width at that depth, so the rim is
+    a one-pixel ramp and the image is differentiable w.r.t. centre and radius at the silhouette.
+    """
+    origins, dirs = pixel_rays(camera)
+    sph = spheres.batched()
+    dtype = origins.dtype
+    big = jnp.asarray(1e10, dtype)
+
+    def spacing(a):
+        sx = jnp.linalg.norm(jnp.diff(a, axis=1), axis=-1)
+        sy = jnp.linalg.norm(jnp.diff(a, axis=0), axis=-1)
+        return jnp.maximum(
+            jnp.pad(sx, ((0, 0), (0, 1)), mode="edge"), jnp.pad(sy, ((0, 1), (0, 0)), mode="edge")
+        )
+
+    spacing_o, spacing_d = spacing(origins), spacing(dirs)
+
+    def one(center, radius):
+        c = jnp.reshape(center, (1, 1, 3))
+        t, hit, _ = ray_sphere(origins, dirs, c, radius)
+        t_close = -jnp.sum((origins - c) * dirs, axis=-1)
+        closest = origins + t_close[..., None] * dirs
+        dist = jnp.linalg.norm(closest - c, axis=-1)
+        footprint = jnp.maximum(spacing_o + jnp.maximum(t_close, 0.0) * spacing_d, 1e-12)
+        alpha = jnp.clip((radius - dist) / footprint + 0.5, 0.0, 1.0)
+        alpha = jnp.where(t_close > 0, alpha, 0.0)
+        rim_point = c + radius * safe_normalize(closest - c)
+        point = jnp.where(
+            hit[..., None], origins + jnp.where(hit, t, 0.0)[..., None] * dirs, rim_point
+        )
+        _, depth = project(point, camera)
+        return alpha, jnp.where(alpha > 0, depth, big), point, safe_normalize(point - c)
+
+    alpha, depth, point, normal = jax.vmap(one)(sph.center, sph.radius)  # (ns, H, W, ...)
+    nearest = jnp.argmin(depth, axis=0)[None]
+    alpha = jnp.take_along_axis(alpha, nearest, axis=0)[0]
+    depth = jnp.take_along_axis(depth, nearest, axis=0)[0]
+    point = jnp.take_along_axis(point, nearest[..., None], axis=0)[0]
+    normal = jnp.take_along_axis(normal, nearest[..., None], axis=0)[0]
+    diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance)
+    amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
+    albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
+    color = albedo * (amb + diffuse) + jnp.reshape(appearance.specular, (1, 1, 3)) * specular
+    rgba = jnp.concatenate([color * alpha[..., None], alpha[..., None]], axis=-1)
+    return rgba, depth
+
+
+def surface_gbuffer(
+    surface,
+    camera: Camera,
+    lights: Lights,
+    appearance: Appearance,
+    *,
+    shading: str = "phong",
+    two_sided: bool = True,
+    cull_backfaces: bool = False,
+    max_tiles: int | None = None,
+):
+    """Rasterize a Surface into the shader's per-pixel inputs.
+
+    Returns:
+      (ShadingBuffer, raster GBuffer (ids, depth, crossings for `antialias`), eye vectors (H, W, 3)
+      toward the viewer). face_normal is filled for shading="flat", color (per-vertex lighting
+      from `light_vertices`) for shading="gouraud". With two_sided, back-facing pixels get flipped
+      normals, bitangents, face normals and the back side's vertex lighting.
+    """
+    pos, nrm, faces = surface.positions, surface.normals, surface.faces
+    eye_rays = -pixel_rays(camera)[1]  # toward the viewer, per pixel (right for every projection)
+    attrs = {
+        "position": pos,
+        "normal": nrm,
+        "tangent": surface.tangents,
+        "bitangent": surface.bitangents,
+        "uv": surface.uv,
+    }
+    if shading == "gouraud":
+        # per-vertex lighting, for both sides: from the eye point (perspective) or the common
+        # direction of the parallel rays (orthographic, oblique, axonometric)
+        if camera.is_perspective:
+            eye4 = jnp.concatenate([eye_position(camera), jnp.ones(1, pos.dtype)])
+        else:
+            eye4 = jnp.concatenate([eye_rays[0, 0], jnp.zeros(1, pos.dtype)])
+        attrs["color"] = light_vertices(pos, nrm, eye4, lights, appearance)
+        if two_sided:
+            attrs["color_back"] = light_vertices(pos, -nrm, eye4, lights, appearance)
+    buf = rasterize_gbuffer(
+        pos, faces, camera, attrs, cull_backfaces=cull_backfaces, max_tiles=max_tiles
+    )
+    a = buf.attributes
+    mask = buf.mask.astype(pos.dtype)
+    normal, bitangent = a["normal"], a["bitangent"]
+    face_normal = None
+    if shading == "flat":
+        fn = _face_normals(pos, faces, nrm)
+        face_normal = jnp.where(buf.mask[..., None], fn[jnp.maximum(buf.surface_id, 0)], 0.0)
+    color = a.get("color")
+    if two_sided:
+        # the raster marks counter-clockwise (normal side) pixels as front-facing
+        back = (buf.mask & ~buf.front_facing)[..., None]
+        normal = jnp.where(back, -normal, normal)
+        bitangent = jnp.where(back, -bitangent, bitangent)
+        if face_normal is not None:
+            face_normal = jnp.where(back, -face_normal, face_normal)
+        if color is not None:
+            color = jnp.where(back, a["color_back"], color)
+    gb = ShadingBuffer(
+        position=a["position"],
+        normal=normal,
+        tangent=a["tangent"],
+        bitangent=bitangent,
+        uv=a["uv"],
+        mask=mask,
+        face_normal=face_normal,
+        color=color,
+    )
+    return gb, buf, eye_rays
+
+
+def render(
+    surface,
+    camera: Camera,
+    lights: Lights,
+    shading: str,
+    appearance: Appearance,
+    *,
+    spheres: Sphere | None = None,
+    textures: Textures | None = None,
+    background=(0.0, 0.0, 0.0),
+    refraction: str = "shortened",
+    draw_spheres: bool = True,
+    antialiased: bool = True,
+    cull_backfaces: bool = False,
+    two_sided: bool = True,
+    max_tiles: int | None = None,
+):
+    """Rasterize, shade and composite a cloth surface.
+
+    Args:
+      surface: a `diffcloth.surface.Surface` (positions, normals, tangents, bitangents (n, 3),
+        uv (n, 2), faces (m, 3)); or any object with those attributes. Differentiable.
+      camera: a `Camera` (any projection kind).
+      lights, appearance: differentiable lighting and material parameters.
+      shading: static mode, one of `shade.MODES`.
+      spheres: analytic spheres: drawn (ray cast, depth-composited, antialiased rims) when
+        `draw_spheres`, and seen in reflections by the modes that trace them.
+      textures: colour / bump / environment / Minnaert textures (see `textures.make_textures`).
+      background: (3,) colour under uncovered pixels, or None for a premultiplied transparent
+        result.
+      refraction: "shortened" (seed) or "snell" for mode "reflect_refract".
+      antialiased: apply the rasterizer's silhouette antialiasing (gives edge gradients).
+      two_sided: light the back side of the cloth with the flipped normal (cloth is thin).
+      max_tiles: rasterizer window budget (see `raster.rasterize`).
+    Returns:
+      (H, W, 4) image: linear RGB (not clipped) and alpha = coverage. With a background the RGB is
+      composited over it; the alpha channel still reports coverage of cloth and spheres.
+    """
+    if shading not in MODES:
+        raise ValueError(f"shading must be one of {MODES}, got {shading!r}")
+    gb, buf, eye_rays = surface_gbuffer(
+        surface,
+        camera,
+        lights,
+        appearance,
+        shading=shading,
+        two_sided=two_sided,
+        cull_backfaces=cull_backfaces,
+        max_tiles=max_tiles,
+    )
+    img = shade(
+        gb,
+        eye_rays,
+        lights,
+        appearance,
+        mode=shading,
+        textures=textures,
+        spheres=spheres,
+        refraction=refraction,
+    )
+    if antialiased:
+        img = antialias(img, buf)
+    if spheres is not None and draw_spheres:
+        sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance)
+        # cloth resting on a sphere wins ties (relative depth bias 1e-4)
+        front = (sphere_depth < buf.depth * (1.0 - 1e-4))[..., None]
+        over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
+        under = img + (1.0 - img[..., 3:]) * sphere_rgba  # cloth over sphere
+        img = jnp.where(front, over, under)
+    if background is not None:
+        bg = jnp.reshape(jnp.asarray(background, img.dtype), (1, 1, 3))
+        img = jnp.concatenate([img[..., :3] + (1.0 - img[..., 3:]) * bg, img[..., 3:]], axis=-1)
+    return img

@@ -1,0 +1,90 @@
+"""render(): rasterize a Surface, shade, composite spheres, over a background."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffcloth.render import lights as Lm
+from diffcloth.render import shade as S
+from diffcloth.render import textures as T
+from diffcloth.render.camera import make_camera
+from diffcloth.render.render import render
+from diffcloth.shapes import make_sphere
+from diffcloth.surface import tessellate
+
+N = 24
+BG = (0.1, 0.2, 0.3)
+L_DIR = np.array([0.2, 0.3, 0.9]) / np.linalg.norm([0.2, 0.3, 0.9])
+
+
+@pytest.fixture(scope="module")
+def scene():
+    # flat square cloth in the z = 0 plane, normals +z, filling the middle of an orthographic view
+    x, y = np.meshgrid(np.linspace(-0.8, 0.8, 5), np.linspace(0.8, -0.8, 5))
+    net = jnp.asarray(np.stack([x, y, np.zeros_like(x)], -1))
+    surf = tessellate(net, 4)
+    if float(surf.normals[0, 2]) < 0:
+        surf = tessellate(net, 4, flip=True)
+    cam = make_camera((0, 0, 3), (0, 0, 0), (0, 1, 0), width=N, height=N, projection="orthographic")
+    lights = Lm.make_lights(ambient=(0.0, 0.0, 0.0), directional=[(L_DIR, (1, 1, 1), 1.0)])
+    app = Lm.make_appearance(specular=(0.0, 0.0, 0.0))
+    return surf, cam, lights, app
+
+
+render_jit = jax.jit(render, static_argnames=("shading", "draw_spheres", "antialiased"))
+
+
+def test_render_phong_flat_cloth_and_sphere(scene):
+    surf, cam, lights, app = scene
+    sph = make_sphere([0.45, 0.45, 0.5], 0.25)  # in front of the cloth's upper-right part
+    img = np.asarray(render_jit(surf, cam, lights, "phong", app, spheres=sph, background=BG))
+    assert img.shape == (N, N, 4) and np.all(np.isfinite(img))
+    yy, xx = np.meshgrid(np.linspace(1, -1, N), np.linspace(-1, 1, N), indexing="ij")  # approx.
+    far_from_sphere = (xx - 0.45) ** 2 + (yy - 0.45) ** 2 > 0.45**2
+    inside = (img[..., 3] > 0.999) & far_from_sphere
+    outside = (img[..., 3] < 1e-6) & far_from_sphere
+    assert inside.sum() > 20 and outside.sum() > 20
+    lam = np.asarray(app.diffuse) * L_DIR[2]
+    np.testing.assert_allclose(
+        img[inside][:, :3], np.broadcast_to(lam, (inside.sum(), 3)), atol=1e-6
+    )
+    np.testing.assert_allclose(
+        img[outside][:, :3], np.broadcast_to(BG, (outside.sum(), 3)), atol=1e-9
+    )
+    # the sphere hides the cloth at its centre: lit sphere colour, normal +z there
+    i, j = int(round((1 - 0.45) / 2 * N - 0.5)), int(round((1 + 0.45) / 2 * N - 0.5))
+    sphere_front = np.asarray(app.sphere_color) * L_DIR[2]
+    np.testing.assert_allclose(img[i, j, :3], sphere_front, atol=0.05)
+
+    def loss(center, direction):
+        lt = dataclasses.replace(lights, direction=direction[None])
+        s = dataclasses.replace(sph, center=center)
+        return jnp.sum(render(surf, cam, lt, "phong", app, spheres=s, background=BG) ** 2)
+
+    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(sph.center, lights.direction[0])
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in g)
+    assert float(jnp.abs(g[0]).sum()) > 0 and float(jnp.abs(g[1]).sum()) > 0
+
+
+@pytest.mark.slow
+def test_render_every_mode_finite(scene):
+    surf, cam, lights, app = scene
+    tex = T.default_textures(size=16, threads=4)
+    sph = make_sphere([0.5, 0.0, 0.5], 0.3)
+    for mode in S.MODES:
+        img = render_jit(surf, cam, lights, mode, app, spheres=sph, textures=tex)
+        assert bool(jnp.all(jnp.isfinite(img))), mode
+    flat = render_jit(surf, cam, lights, "flat", app)
+    phong = render_jit(surf, cam, lights, "phong", app)
+    gouraud = render_jit(surf, cam, lights, "gouraud", app)
+    np.testing.assert_allclose(flat, phong, atol=1e-6)  # planar cloth: all three agree
+    np.testing.assert_allclose(gouraud, phong, atol=1e-6)
+
+
+def test_render_bad_mode(scene):
+    surf, cam, lights, app = scene
+    with pytest.raises(ValueError, match="shading"):
+        render(surf, cam, lights, "toon", app)
