@@ -9,7 +9,7 @@ bodies, the pipeline) can call inside its own `lax.scan`:
   h below about 2 sqrt(m_min / k_max) (see `rollout.stable_substep`).
 - implicit: backward Euler in the velocity, m (v' - v) = h f(x + h v', v'), solved by Newton with
   matrix-free conjugate gradients on a positive semi-definite Newton matrix. Its gradient is taken
-  implicitly (`jax.lax.custom_root`, GMRES on the exact linearisation), not through the iterations.
+  implicitly (`jax.lax.custom_root`, BiCGSTAB on the exact linearisation), not through the iterations.
   Gravity and drag are explicit; springs, bending and spring damping are implicit.
 """
 
@@ -19,7 +19,6 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.sparse.linalg import cg, gmres
 
 from diffcloth.physics.collide import Colliders, collide
 from diffcloth.physics.forces import (
@@ -48,6 +47,64 @@ class Contacts:
     plane: jax.Array
 
 
+def cg(matvec, b, *, tol, maxiter):
+    """Matrix-free conjugate gradients for a symmetric positive (semi-)definite operator.
+
+    A plain while-loop (no custom_linear_solve inside), stopping at |r| <= tol |b| or maxiter.
+    Returns (solution, number of iterations).
+    """
+    bb = jnp.sum(b * b)
+    stop = (tol * tol) * bb
+
+    def cond(c):
+        _, r, _, rr, k = c
+        return (rr > stop) & (k < maxiter)
+
+    def body(c):
+        x, r, p, rr, k = c
+        ap = matvec(p)
+        pap = jnp.sum(p * ap)
+        alpha = jnp.where(pap > 0, rr / jnp.where(pap > 0, pap, 1.0), 0.0)
+        x = x + alpha * p
+        r = r - alpha * ap
+        rr_new = jnp.sum(r * r)
+        beta = jnp.where(rr > 0, rr_new / jnp.where(rr > 0, rr, 1.0), 0.0)
+        return x, r, r + beta * p, rr_new, k + 1
+
+    x0 = jnp.zeros_like(b)
+    x, _, _, _, k = jax.lax.while_loop(cond, body, (x0, b, b, bb, 0))
+    return x, k
+
+
+def bicgstab(matvec, b, *, tol, maxiter):
+    """Matrix-free BiCGSTAB for a general (non-symmetric) operator; a plain while-loop."""
+    bb = jnp.sum(b * b)
+    stop = (tol * tol) * bb
+    safe = lambda d: jnp.where(jnp.abs(d) > 0, d, 1.0)
+
+    def cond(c):
+        return (c[7] > stop) & (c[8] < maxiter)
+
+    def body(c):
+        x, r, p, v, rho, alpha, omega, _, k = c
+        rho_new = jnp.sum(b * r)
+        beta = (rho_new / safe(rho)) * (alpha / safe(omega))
+        p = r + beta * (p - omega * v)
+        v = matvec(p)
+        alpha = rho_new / safe(jnp.sum(b * v))
+        s = r - alpha * v
+        t = matvec(s)
+        omega = jnp.sum(t * s) / safe(jnp.sum(t * t))
+        x = x + alpha * p + omega * s
+        r = s - omega * t
+        return x, r, p, v, rho_new, alpha, omega, jnp.sum(r * r), k + 1
+
+    one = jnp.ones((), b.dtype)
+    z = jnp.zeros_like(b)
+    x, *_ = jax.lax.while_loop(cond, body, (z, b, z, z, one, one, one, bb, 0))
+    return x
+
+
 # Substeps work on planar arrays (3, rows, cols); free is (rows, cols) bool, mass (rows, cols).
 
 
@@ -70,15 +127,20 @@ def _implicit_substep(net, sim, material, x, v, mass, free, h, pin_v):
         r = safe_mass * (v1 - v) - h * (fi + f_ext)
         return jnp.where(free3, r, v1 - pin_v)
 
+    # The Newton solver is not differentiated (custom_root differentiates the root implicitly), so
+    # everything it closes over is cut from the gradient.
+    ng = jax.lax.stop_gradient
+    net_ng, mat_ng, x_ng, h_ng, m_ng = ng(net), ng(material), ng(x), ng(h), ng(safe_mass)
+
     def newton(res, v1):
         def body(_, v1):
             r = res(v1)
-            xn = x + h * v1
+            xn = x_ng + h_ng * v1
 
             def matvec(d):
                 d = jnp.where(free3, d, 0.0)
-                df = _internal_force_differential(net, material, xn, h * h * d, h * d)
-                return jnp.where(free3, safe_mass * d - df, 0.0)
+                df = _internal_force_differential(net_ng, mat_ng, xn, h_ng * h_ng * d, h_ng * d)
+                return jnp.where(free3, m_ng * d - df, 0.0)
 
             delta, _ = cg(matvec, -jnp.where(free3, r, 0.0), tol=sim.cg_tol, maxiter=sim.cg_iters)
             return v1 + jnp.where(free3, delta, 0.0)
@@ -86,7 +148,8 @@ def _implicit_substep(net, sim, material, x, v, mass, free, h, pin_v):
         return jax.lax.fori_loop(0, sim.newton_iters, body, v1)
 
     def tangent_solve(g, y):
-        return gmres(g, y, tol=sim.cg_tol * 1e-2, restart=30, maxiter=max(2, sim.cg_iters // 10))[0]
+        solve = lambda op, rhs: bicgstab(op, rhs, tol=sim.cg_tol, maxiter=4 * sim.cg_iters)
+        return jax.lax.custom_linear_solve(g, y, solve=solve, transpose_solve=solve)
 
     f0 = _internal_forces(net, material, x, v) + f_ext
     guess = jax.lax.stop_gradient(jnp.where(free3, v + h * f0 / safe_mass, pin_v))
