@@ -1,0 +1,66 @@
+"""`diffcloth simulate CONFIG --out DIR` and `python -m diffcloth`."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from diffcloth.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SMALL = """
+[net]
+rows = 4
+cols = 5
+width = 0.4
+height = 0.3
+center = [0.0, 0.5, 0.0]
+pinned = [[0, 0], [0, 4]]
+plane = "xy"
+
+[material]
+stretch = 20.0
+shear = 5.0
+
+[sim]
+num_frames = 6
+num_substeps = 20
+
+[[spheres]]
+center = [0.0, 0.1, 0.2]
+radius = 0.1
+
+[camera]
+eye = [0, 1, 3]
+"""
+
+
+def test_simulate_writes_trajectory_and_prints_progress(tmp_path, capsys):
+    cfg = tmp_path / "small.toml"
+    cfg.write_text(SMALL)
+    assert main(["simulate", str(cfg), "--out", str(tmp_path / "out"), "--chunk", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert "frame    3/6" in printed and "frame    6/6" in printed
+    data = np.load(tmp_path / "out" / "trajectory.npz")
+    assert data["x"].shape == (6, 4, 5, 3) and np.all(np.isfinite(data["x"]))
+    np.testing.assert_allclose(data["x"][:, 0, 0], np.broadcast_to(data["rest"][0, 0], (6, 3)))
+    assert data["x"][-1, -1, 2, 1] < data["rest"][-1, 2, 1]  # it falls
+
+
+def test_bad_config_and_unstable_step_exit_nonzero(tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[material]\ndensity = -1.0\n")
+    assert main(["simulate", str(cfg), "--out", str(tmp_path / "o")]) == 2
+    assert "density = -1.0" in capsys.readouterr().err
+    cfg.write_text(SMALL.replace("num_substeps = 20", "num_substeps = 1"))
+    assert main(["simulate", str(cfg), "--out", str(tmp_path / "o")]) == 1
+    assert "implicit integrator" in capsys.readouterr().err
+
+
+def test_python_dash_m_entry_point():
+    out = subprocess.run(
+        [sys.executable, "-m", "diffcloth", "--help"], capture_output=True, text=True, cwd=ROOT
+    )
+    assert out.returncode == 0 and "simulate" in out.stdout
