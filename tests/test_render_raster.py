@@ -29,14 +29,55 @@ def quad(x0, x1, y0, y1, z=0.0):
     return jnp.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
 
 
+NV, NF = 16, 18  # every test mesh is padded to this size (degenerate faces) to share compiles
+
+
+def pad(positions, faces, colors):
+    n, m = positions.shape[0], faces.shape[0]
+    positions = jnp.concatenate([positions, jnp.zeros((NV - n, 3), positions.dtype)])
+    colors = jnp.concatenate([colors, jnp.zeros((NV - n, colors.shape[1]), colors.dtype)])
+    faces = jnp.concatenate([jnp.asarray(faces, jnp.int32), jnp.zeros((NF - m, 3), jnp.int32)])
+    return positions, faces, colors
+
+
 @jax.jit
-def render(positions, faces, colors, camera):
+def _render(positions, faces, colors, camera):
     return R.render_mesh(positions, faces, camera, colors)
 
 
 @jax.jit
-def render_hard(positions, faces, colors, camera):
+def _render_hard(positions, faces, colors, camera):
     return R.render_mesh(positions, faces, camera, colors, antialiased=False)
+
+
+def _weighted(positions, faces, colors, camera, weights):
+    return jnp.sum(weights * R.render_mesh(positions, faces, camera, colors))
+
+
+def _weighted_hard(positions, faces, colors, camera, weights):
+    return jnp.sum(weights * R.render_mesh(positions, faces, camera, colors, antialiased=False))
+
+
+_grad = jax.jit(jax.grad(_weighted, argnums=(0, 2)))
+_grad_hard = jax.jit(jax.grad(_weighted_hard, argnums=(0, 2)))
+_value_hard = jax.jit(_weighted_hard)
+_frags = jax.jit(lambda p, f, c: R.rasterize(p, f, c))
+
+
+def render(positions, faces, colors, camera):
+    return _render(*pad(positions, faces, colors), camera)
+
+
+def render_hard(positions, faces, colors, camera):
+    return _render_hard(*pad(positions, faces, colors), camera)
+
+
+def grad(positions, faces, colors, camera, weights=None):
+    """d sum(weights * image) / d (positions, colors), unpadded."""
+    weights = jnp.ones((camera.height, camera.width, 4)) if weights is None else weights
+    n = positions.shape[0]
+    gp, gc = _grad(*pad(positions, faces, colors), camera, weights)
+    return gp[:n], gc[:n]
 
 
 WHITE = jnp.ones((4, 3))
@@ -85,8 +126,9 @@ SLANTED = jnp.array([[-1.0, -1.0, 0.5], [1.2, -1.0, 0.5], [1.0, 1.0, -2.5], [-1.
 
 def test_perspective_correct_interpolation():
     cam = persp_camera()
-    frags = R.rasterize(SLANTED, QUAD_FACES, cam)
-    world = R.interpolate(SLANTED, frags, QUAD_FACES)
+    p, f, _ = pad(SLANTED, QUAD_FACES, SLANTED)
+    frags = _frags(p, f, cam)
+    world = R.interpolate(p, frags, f)
     mask = np.asarray(frags.triangle_id >= 0)
     assert mask.sum() > 100
     o, d = C.pixel_rays(cam)
@@ -102,37 +144,30 @@ def test_perspective_correct_interpolation():
 def test_interior_gradients_match_finite_differences():
     cam = persp_camera()
     rng = np.random.default_rng(1)
-    weights = jnp.asarray(rng.uniform(size=(SIZE, SIZE, 3)))
+    weights = jnp.asarray(rng.uniform(size=(SIZE, SIZE, 4)))
     colors = jnp.asarray(rng.uniform(size=(4, 3)))
-
-    def loss(pos, col):
-        frags = R.rasterize(pos, QUAD_FACES, cam)
-        return jnp.sum(weights * R.interpolate(col, frags, QUAD_FACES))
-
-    g_pos, g_col = jax.jit(jax.grad(loss, argnums=(0, 1)))(SLANTED, colors)
+    p, f, c = pad(SLANTED, QUAD_FACES, colors)
+    g_pos, g_col = _grad_hard(p, f, c, cam, weights)
     assert np.abs(g_pos).max() > 0 and np.abs(g_col).max() > 0
-    f = jax.jit(loss)
     eps = 1e-6
     for idx in [(0, 0), (1, 2), (2, 1), (3, 0), (2, 2)]:
-        e = jnp.zeros_like(SLANTED).at[idx].set(eps)
-        fd = (f(SLANTED + e, colors) - f(SLANTED - e, colors)) / (2 * eps)
+        e = jnp.zeros_like(p).at[idx].set(eps)
+        fd = (_value_hard(p + e, f, c, cam, weights) - _value_hard(p - e, f, c, cam, weights)) / (2 * eps)
         np.testing.assert_allclose(g_pos[idx], fd, rtol=1e-5, atol=1e-8)
-    e = jnp.zeros_like(colors).at[2, 1].set(eps)
-    fd = (f(SLANTED, colors + e) - f(SLANTED, colors - e)) / (2 * eps)
+    e = jnp.zeros_like(c).at[2, 1].set(eps)
+    fd = (_value_hard(p, f, c + e, cam, weights) - _value_hard(p, f, c - e, cam, weights)) / (2 * eps)
     np.testing.assert_allclose(g_col[2, 1], fd, rtol=1e-6)
 
 
-def _shift_loss(base, faces, colors, camera, weights, moving):
+def _check_silhouette_gradient(base, faces, colors, camera, weights, moving, h=0.05):
+    """AD vs central FD of d sum(weights * image(base + dx * moving)) / d dx at dx = 0."""
+    gp, _ = grad(base, faces, colors, camera, weights)
+    g = float(jnp.sum(gp[:, 0] * moving))
+
     def loss(dx):
-        pos = base.at[:, 0].add(dx * moving)
-        return jnp.sum(weights * render(pos, faces, colors, camera))
+        return float(jnp.sum(weights * render(base.at[:, 0].add(dx * moving), faces, colors, camera)))
 
-    return loss
-
-
-def _check_silhouette_gradient(loss, x0=0.0, h=0.05):
-    g = float(jax.grad(loss)(jnp.asarray(x0)))
-    fd = float((loss(jnp.asarray(x0 + h)) - loss(jnp.asarray(x0 - h))) / (2 * h))
+    fd = (loss(h) - loss(-h)) / (2 * h)
     assert abs(fd) > 1e-3, fd
     assert abs(g - fd) <= 0.05 * abs(fd), (g, fd)
     return g, fd
@@ -144,12 +179,11 @@ def test_silhouette_gradient_translating_square(camera_fn):
     scale = 1.0 if cam.kind == "orthographic" else 0.12
     base = quad(-30.0, 4.3, -6.2, 7.7) * scale  # left part off-screen: coverage changes with x
     ones = jnp.ones((SIZE, SIZE, 4))
-    loss = _shift_loss(base, QUAD_FACES, WHITE, cam, ones, jnp.ones(4))
-    g, fd = _check_silhouette_gradient(loss, h=0.05 * scale)
+    g, fd = _check_silhouette_gradient(base, QUAD_FACES, WHITE, cam, ones, jnp.ones(4), h=0.05 * scale)
     if cam.kind == "orthographic":  # d(area)/dx = edge length (13.9 px) x 4 channels
         assert abs(g / 4 - 13.9) <= 1.0
     ramp = jnp.broadcast_to(jnp.linspace(0.0, 2.0, SIZE)[None, :, None], (SIZE, SIZE, 4))
-    _check_silhouette_gradient(_shift_loss(base, QUAD_FACES, WHITE, cam, ramp, jnp.ones(4)), h=0.05 * scale)
+    _check_silhouette_gradient(base, QUAD_FACES, WHITE, cam, ramp, jnp.ones(4), h=0.05 * scale)
 
 
 def test_occlusion_edge_gradient():
@@ -161,7 +195,7 @@ def test_occlusion_edge_gradient():
     colors = jnp.concatenate([jnp.tile(jnp.array([1.0, 0.2, 0.0]), (4, 1)), jnp.tile(jnp.array([0.0, 0.5, 1.0]), (4, 1))])
     moving = jnp.array([1.0, 1, 1, 1, 0, 0, 0, 0])
     weights = jnp.ones((SIZE, SIZE, 4)).at[..., 3].set(0.0)
-    g, fd = _check_silhouette_gradient(_shift_loss(pos, faces, colors, cam, weights, moving))
+    g, fd = _check_silhouette_gradient(pos, faces, colors, cam, weights, moving)
     # colour difference (1.2 - 1.5) x edge length 11.7 px (rows whose centre the edge spans: 11)
     assert abs(g / (1.2 - 1.5) - 11.7) <= 1.0
 
@@ -175,13 +209,10 @@ def test_empty_scene():
     faces = jnp.concatenate([QUAD_FACES, QUAD_FACES + 4])
     colors = jnp.ones((8, 3))
 
-    def loss(p, c):
-        return jnp.sum((render(p, faces, c, cam) - 0.3) ** 2)
-
     img = render(pos, faces, colors, cam)
     np.testing.assert_array_equal(np.asarray(img), 0.0)
-    gp, gc = jax.grad(loss, argnums=(0, 1))(pos, colors)
-    assert np.isfinite(float(loss(pos, colors)))
+    assert np.isfinite(float(jnp.sum((img - 0.3) ** 2)))
+    gp, gc = grad(pos, faces, colors, cam)
     np.testing.assert_array_equal(np.asarray(gp), 0.0)
     np.testing.assert_array_equal(np.asarray(gc), 0.0)
     none = R.render_mesh(jnp.zeros((0, 3)), jnp.zeros((0, 3), jnp.int32), cam, jnp.zeros((0, 3)))
@@ -202,7 +233,7 @@ def test_zero_area_triangles():
     alone = render(good, faces[:1], colors[:3], cam)
     assert np.all(np.isfinite(img))
     np.testing.assert_allclose(np.asarray(img), np.asarray(alone), atol=1e-12)
-    g = jax.grad(lambda p: jnp.sum(render(p, faces, colors, cam) ** 2))(pos)
+    g, _ = grad(pos, faces, colors, cam, jnp.linspace(0.0, 1.0, SIZE * SIZE * 4).reshape(SIZE, SIZE, 4))
     assert np.all(np.isfinite(g)) and np.abs(g[:3]).max() > 0
     np.testing.assert_array_equal(np.asarray(g[3:]), 0.0)
 
@@ -212,7 +243,7 @@ def test_near_plane_crossing_floor():
     cam = C.make_camera((0.0, 0.0, 0.0), (0.0, -0.3, -1.0), (0, 1, 0), width=SIZE, height=SIZE, near=0.1, far=100.0)
     floor = jnp.array([[-50.0, -1.0, 50.0], [50.0, -1.0, 50.0], [50.0, -1.0, -50.0], [-50.0, -1.0, -50.0]])
     colors = jnp.ones((4, 3))
-    frags = R.rasterize(floor, QUAD_FACES, cam)
+    frags = _frags(*pad(floor, QUAD_FACES, colors)[:2], cam)
     o, d = C.pixel_rays(cam)
     t = (-1.0 - o[..., 1]) / jnp.where(d[..., 1] < 0, d[..., 1], -1.0)
     hit = o + t[..., None] * d
@@ -220,25 +251,24 @@ def test_near_plane_crossing_floor():
     got = np.asarray(frags.triangle_id >= 0)
     assert want.sum() > 100 and (want != got).sum() <= SIZE  # at most the horizon row differs
     img = render(floor, QUAD_FACES, colors, cam)
-    g = jax.grad(lambda p: jnp.sum(render(p, QUAD_FACES, colors, cam)))(floor)
+    g, _ = grad(floor, QUAD_FACES, colors, cam)
     assert np.all(np.isfinite(img)) and np.all(np.isfinite(g))
     # a triangle with a vertex exactly at the eye and one through it: finite
     tri = jnp.array([[0.0, 0.0, 0.0], [1.0, -1.0, -3.0], [-1.0, -1.0, 3.0]])
     img = render(tri, jnp.array([[0, 1, 2]]), jnp.ones((3, 3)), cam)
-    g = jax.grad(lambda p: jnp.sum(render(p, jnp.array([[0, 1, 2]]), jnp.ones((3, 3)), cam)))(tri)
+    g, _ = grad(tri, jnp.array([[0, 1, 2]]), jnp.ones((3, 3)), cam)
     assert np.all(np.isfinite(img)) and np.all(np.isfinite(g))
 
 
 def test_camera_inside_cloth_bounding_box():
     cam = C.make_camera((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0, 1, 0), width=SIZE, height=SIZE)
-    u, v = np.meshgrid(np.linspace(-2, 2, 9), np.linspace(-2, 2, 9))
-    pos = jnp.asarray(np.stack([u, 0.3 * np.sin(3 * u), v], -1).reshape(-1, 3))  # a wavy sheet through the eye
-    idx = np.arange(81).reshape(9, 9)
-    faces = jnp.asarray(
-        np.concatenate([np.stack([idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:]], -1), np.stack([idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]], -1)]).reshape(-1, 3)
-    )
-    img = render(pos, faces, jnp.ones((81, 3)), cam)
-    g = jax.grad(lambda p: jnp.sum(render(p, faces, jnp.ones((81, 3)), cam)))(pos)
+    u, v = np.meshgrid(np.linspace(-2, 2, 4), np.linspace(-2, 2, 4))
+    pos = jnp.asarray(np.stack([u, 0.3 * np.sin(3 * u), v], -1).reshape(-1, 3))  # sheet through the eye
+    idx = np.arange(16).reshape(4, 4)
+    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:], idx[1:, 1:]
+    faces = jnp.asarray(np.concatenate([np.stack([a, b, c], -1), np.stack([c, b, d], -1)]).reshape(-1, 3))
+    img = render(pos, faces, jnp.ones((16, 3)), cam)
+    g, _ = grad(pos, faces, jnp.ones((16, 3)), cam)
     assert np.all(np.isfinite(img)) and np.all(np.isfinite(g)) and float(img[..., 3].sum()) > 0
 
 
@@ -248,7 +278,7 @@ def test_full_screen_triangle():
     img = render_hard(big, jnp.array([[0, 1, 2]]), jnp.ones((3, 3)), cam)
     assert int((img[..., 3] > 0).sum()) == SIZE * SIZE
     two = jnp.concatenate([big, big.at[:, 2].set(-1.0)])
-    frags = R.rasterize(two, jnp.array([[0, 1, 2], [3, 4, 5]]), cam)
+    frags = _frags(*pad(two, jnp.array([[0, 1, 2], [3, 4, 5]]), two)[:2], cam)
     np.testing.assert_array_equal(np.asarray(frags.triangle_id), 0)  # the nearer one everywhere
     need = int(R.required_tiles(two, jnp.array([[0, 1, 2], [3, 4, 5]]), cam))
     assert need <= R.default_max_tiles(2, SIZE, SIZE)
@@ -272,13 +302,18 @@ def test_gbuffer_composite_and_antialias():
 
 def test_vmap_over_cameras_and_float32():
     eyes = jnp.array([[0.0, 0.0, 4.0], [0.5, 0.3, 4.0]])
-    cams = jax.vmap(lambda e: C.make_camera(e, jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]), width=16, height=16))(eyes)
-    imgs = jax.vmap(lambda c: render(SLANTED, QUAD_FACES, jnp.ones((4, 3)), c))(cams)
+    up = jnp.array([0.0, 1.0, 0.0])
+    cams = jax.vmap(lambda e: C.make_camera(e, jnp.zeros(3), up, width=8, height=8))(eyes)
+    p, f, c = pad(SLANTED, QUAD_FACES, jnp.ones((4, 3)))
+    imgs = jax.jit(jax.vmap(lambda cam: R.render_mesh(p, f, cam, c)))(cams)
     for i in range(2):
-        cam = C.make_camera(eyes[i], jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]), width=16, height=16)
-        np.testing.assert_allclose(imgs[i], render(SLANTED, QUAD_FACES, jnp.ones((4, 3)), cam), atol=1e-12)
-    f32 = C.make_camera(jnp.array([0.0, 0.0, 4.0], jnp.float32), jnp.zeros(3, jnp.float32), jnp.array([0, 1, 0], jnp.float32), width=16, height=16)
-    img = R.render_mesh(SLANTED.astype(jnp.float32), QUAD_FACES, f32, jnp.ones((4, 3), jnp.float32))
+        cam = C.make_camera(eyes[i], jnp.zeros(3), up, width=8, height=8)
+        np.testing.assert_allclose(imgs[i], _render(p, f, c, cam), atol=1e-12)
+    assert float(jnp.abs(imgs[0] - imgs[1]).max()) > 0.1
+    f32 = C.make_camera(
+        jnp.array([0.0, 0.0, 4.0], jnp.float32), jnp.zeros(3, jnp.float32), up.astype(jnp.float32), width=8, height=8
+    )
+    img = _render(p.astype(jnp.float32), f, c.astype(jnp.float32), f32)
     assert img.dtype == jnp.float32
     np.testing.assert_allclose(img, imgs[0], atol=1e-4)
 

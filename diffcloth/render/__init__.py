@@ -23,6 +23,7 @@ from diffcloth.render.camera import front_view, side_view, top_view
 from diffcloth.render.culling import facing_camera, frustum_planes, sphere_in_frustum
 from diffcloth.render.raster import Fragments, GBuffer, antialias, composite, edge_neighbors
 from diffcloth.render.raster import interpolate, rasterize, rasterize_gbuffer, render_mesh
+from diffcloth.render.spheres import raycast_spheres
 
 # shading (lights, appearance, textures, G-buffer shading modes); `shade` stays the module name
 from diffcloth.render.lights import Appearance, Light, Lights, make_appearance, make_lights

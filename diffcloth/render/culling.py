@@ -35,14 +35,16 @@ def sphere_in_frustum(center, radius, planes):
     Returns:
       (...) bool: False when the sphere lies entirely outside some plane (distance > radius).
     """
-    dist = jnp.einsum("pk,...k->...p", planes[:, :3], center) + planes[:, 3]
+    center = jnp.asarray(center)
+    offset = planes[:, 3].reshape((1,) * (center.ndim - 1) + (6,))
+    dist = jnp.einsum("pk,...k->...p", planes[:, :3], center) + offset
     return jnp.all(dist <= jnp.asarray(radius)[..., None], axis=-1)
 
 
 def bounding_sphere(positions):
     """(center (3,), radius ()) of a point set: centre of the bounding box, max distance to it."""
     center = 0.5 * (positions.min(axis=0) + positions.max(axis=0))
-    radius = jnp.sqrt(jnp.max(jnp.sum((positions - center) ** 2, axis=-1)))
+    radius = jnp.sqrt(jnp.max(jnp.sum((positions - center[None]) ** 2, axis=-1)))
     return center, radius
 
 
@@ -62,7 +64,7 @@ def facing_camera(positions, faces, camera: Camera):
     """
     n = triangle_normals(positions, faces, normalize=False)
     if camera.is_perspective:
-        d = positions[faces[:, 0]] - eye_position(camera)
+        d = positions[faces[:, 0]] - eye_position(camera)[None]
     else:
         d = jnp.broadcast_to(view_direction(camera), n.shape)
     return jnp.sum(d * n, axis=-1) < 0

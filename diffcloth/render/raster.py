@@ -26,8 +26,9 @@ Pipeline (everything pure JAX; jit, vmap and grad work; no Python loops over pix
 4. Silhouette gradients (`antialias`): for every horizontal / vertical pair of neighbouring pixels
    that show different surfaces, the nearer pixel's triangle edge crossing the segment between the
    centres is found (fraction t of the way, from the linear edge functions); if that edge is a
-   silhouette (boundary edge, or its neighbour faces the other way or is culled), the colours are
-   blended by |t - 1/2| exactly as nvdiffrast does. For a straight edge the blended image's
+   silhouette (boundary edge, or its neighbour faces the other way or is culled) and is more
+   perpendicular to this pair's direction than to the other one, the colours are blended by
+   |t - 1/2| exactly as nvdiffrast does. For a straight edge the blended image's
    coverage equals the true pixel area covered, so d(image)/d(vertex) is the derivative of the
    area; as pixels shrink the image converges to the hard image. Edges between triangles of one
    surface are not blended. Limitation: silhouettes made of triangles that cover no pixel centre
@@ -376,6 +377,9 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int):
     o = s.origin[sel // 3]
     ef = r[..., 0] * (sx - o[..., 0]) + r[..., 1] * (sy - o[..., 1]) + r[..., 2]
     slope = -(dx * r[..., 0] + dy * r[..., 1])
+    # as nvdiffrast: an edge is handled by the pair direction it is most perpendicular to
+    ar0, ar1 = jnp.abs(jax.lax.stop_gradient(r[..., 0])), jnp.abs(jax.lax.stop_gradient(r[..., 1]))
+    found = found & jnp.stack([ar0[0] >= ar1[0], ar1[1] > ar0[1]])
     t = jnp.where(found, jnp.clip(safe_div(ef, jnp.where(found, slope, 1.0)), 0.0, 1.0), -1.0)
     t_a = jnp.where(a_front, t, -1.0)  # stored on this pixel (+x / +y slot)
     t_b = jnp.where(a_front, -1.0, t)  # stored on the partner (-x / -y slot)
