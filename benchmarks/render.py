@@ -1,4 +1,4 @@
-"""Rasterizer benchmark: the seed's 130 x 91 = 11,830-vertex cloth surface (23,040 triangles).
+"""Rasterizer benchmark: the seed's 130 x 91 = 11,830-vertex cloth surface (23,220 triangles).
 
 Visibility + interpolation of an RGB colour + silhouette antialiasing, forward and forward +
 backward (gradient of an image loss w.r.t. vertex positions and colours), at 256 and 512.
@@ -50,7 +50,9 @@ def main(sizes=(256, 512), repeats: int = 7):
     pos, faces, colors = jnp.asarray(pos), jnp.asarray(faces), jnp.asarray(colors)
     nbr = edge_neighbors(np.asarray(faces))
     for size in sizes:
-        cam = make_camera((0.0, 1.1, 1.5), (0.0, -0.1, 0.0), (0.0, 1.0, 0.0), width=size, height=size)
+        cam = make_camera(
+            (0.0, 1.1, 1.5), (0.0, -0.1, 0.0), (0.0, 1.0, 0.0), width=size, height=size
+        )
 
         @jax.jit
         def forward(p, c, cam=cam):
@@ -59,8 +61,10 @@ def main(sizes=(256, 512), repeats: int = 7):
         target = forward(pos + 0.01, colors * 0.9)
 
         @jax.jit
-        def grad(p, c, cam=cam):
-            loss = lambda p, c: jnp.mean((render_mesh(p, faces, cam, c, neighbors=nbr) - target) ** 2)
+        def grad(p, c, cam=cam, target=target):
+            loss = lambda p, c: jnp.mean(
+                (render_mesh(p, faces, cam, c, neighbors=nbr) - target) ** 2
+            )
             return jax.grad(loss, argnums=(0, 1))(p, c)
 
         f_ms = _median_ms(forward, pos, colors, repeats=repeats)

@@ -3,8 +3,8 @@
 import math
 
 import jax
-import jax.test_util  # noqa: F401
 import jax.numpy as jnp
+import jax.test_util  # noqa: F401
 import numpy as np
 import pytest
 
@@ -28,23 +28,38 @@ def test_look_at_matches_glu():
     for _ in range(5):
         eye, target = rng.normal(size=3) * 3, rng.normal(size=3)
         up = np.array([0.1, 1.0, -0.2])
-        np.testing.assert_allclose(C.look_at(eye, target, up), glu_look_at(eye, target, up), atol=1e-12)
+        np.testing.assert_allclose(
+            C.look_at(eye, target, up), glu_look_at(eye, target, up), atol=1e-12
+        )
 
 
 def test_view_from_vrp_equals_look_at():
-    eye, target, up = np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.5, -1.0]), np.array([0.0, 1.0, 0.0])
-    np.testing.assert_allclose(C.view_from_vrp(eye, eye - target, up), C.look_at(eye, target, up), atol=1e-12)
+    eye, target, up = (
+        np.array([1.0, 2.0, 3.0]),
+        np.array([0.0, 0.5, -1.0]),
+        np.array([0.0, 1.0, 0.0]),
+    )
+    np.testing.assert_allclose(
+        C.view_from_vrp(eye, eye - target, up), C.look_at(eye, target, up), atol=1e-12
+    )
 
 
 def test_perspective_and_frustum_closed_forms():
     fov, aspect, n, f = 60.0, 1.5, 0.5, 20.0
     t = 1.0 / math.tan(math.radians(fov) / 2)
     want = np.array(
-        [[t / aspect, 0, 0, 0], [0, t, 0, 0], [0, 0, (f + n) / (n - f), 2 * f * n / (n - f)], [0, 0, -1, 0]]
+        [
+            [t / aspect, 0, 0, 0],
+            [0, t, 0, 0],
+            [0, 0, (f + n) / (n - f), 2 * f * n / (n - f)],
+            [0, 0, -1, 0],
+        ]
     )
     np.testing.assert_allclose(C.perspective(fov, aspect, n, f), want, atol=1e-12)
     top = n / t
-    np.testing.assert_allclose(C.frustum(-top * aspect, top * aspect, -top, top, n, f), want, atol=1e-12)
+    np.testing.assert_allclose(
+        C.frustum(-top * aspect, top * aspect, -top, top, n, f), want, atol=1e-12
+    )
 
 
 def test_orthographic_closed_form():
@@ -60,7 +75,9 @@ def test_orthographic_closed_form():
     np.testing.assert_allclose(C.orthographic(l, r, b, t, n, f), want, atol=1e-12)
 
 
-@pytest.mark.parametrize("kind,scale,alpha", [("cavalier", 1.0, 45.0), ("cabinet", 0.5, 63.43494882292201)])
+@pytest.mark.parametrize(
+    "kind,scale,alpha", [("cavalier", 1.0, 45.0), ("cabinet", 0.5, 63.43494882292201)]
+)
 def test_oblique_receding_axis(kind, scale, alpha):
     fn = getattr(C, kind)
     box = (-2.0, 2.0, -2.0, 2.0, 0.1, 10.0)
@@ -101,7 +118,9 @@ def test_multiview(kind, hidden):
 
 @pytest.mark.parametrize("projection", C.PROJECTION_KINDS)
 def test_make_camera_kinds_frame_the_target(projection):
-    cam = C.make_camera((0.5, 1.0, 4.0), (0.0, 0.0, 0.0), (0, 1, 0), width=20, height=10, projection=projection)
+    cam = C.make_camera(
+        (0.5, 1.0, 4.0), (0.0, 0.0, 0.0), (0, 1, 0), width=20, height=10, projection=projection
+    )
     clip, depth = C.project(jnp.zeros((1, 3)), cam)
     ndc = clip[0, :3] / clip[0, 3]
     np.testing.assert_allclose(ndc[:2], 0.0, atol=1e-9)  # target at the image centre
@@ -121,19 +140,25 @@ def test_eye_and_rays():
     # the ray through pixel (row 0, col 0) goes up and left in view space
     dv = np.asarray(cam.view)[:3, :3] @ np.asarray(d[0, 0])
     assert dv[0] < 0 and dv[1] > 0 and dv[2] < 0
-    ortho = C.make_camera(eye, (0.0, 0.0, 0.0), (0, 1, 0), width=6, height=4, projection="orthographic")
+    ortho = C.make_camera(
+        eye, (0.0, 0.0, 0.0), (0, 1, 0), width=6, height=4, projection="orthographic"
+    )
     _, d2 = C.pixel_rays(ortho)
     np.testing.assert_allclose(d2, jnp.broadcast_to(C.view_direction(ortho), d2.shape), atol=1e-9)
 
 
 def test_float32_and_gradient():
     eye = jnp.array([0.0, 1.0, 3.0], jnp.float32)
-    cam = C.make_camera(eye, jnp.zeros(3, jnp.float32), jnp.array([0, 1, 0], jnp.float32), width=4, height=4)
+    cam = C.make_camera(
+        eye, jnp.zeros(3, jnp.float32), jnp.array([0, 1, 0], jnp.float32), width=4, height=4
+    )
     assert cam.view.dtype == jnp.float32 and cam.projection.dtype == jnp.float32
 
     def f(e):
         v = C.look_at(e, jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]))
-        return jnp.sum((C.perspective(50.0, 1.0, 0.1, 10.0) @ v @ jnp.array([0.2, 0.1, 0.0, 1.0])) ** 2)
+        return jnp.sum(
+            (C.perspective(50.0, 1.0, 0.1, 10.0) @ v @ jnp.array([0.2, 0.1, 0.0, 1.0])) ** 2
+        )
 
     g = jax.grad(f)(jnp.array([0.1, 1.0, 3.0]))
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
@@ -174,7 +199,9 @@ def test_singular_views_rejected():
     with pytest.raises(ValueError, match="near"):
         C.orthographic(-1, 1, -1, 1, 5.0, 1.0)
     # ortho cameras may have near <= 0
-    C.make_camera((0, 0, 3), (0, 0, 0), (0, 1, 0), width=4, height=4, near=-1.0, projection="orthographic")
+    C.make_camera(
+        (0, 0, 3), (0, 0, 0), (0, 1, 0), width=4, height=4, near=-1.0, projection="orthographic"
+    )
 
 
 def test_camera_from_matrices_validates_view():
@@ -193,7 +220,9 @@ def test_camera_from_matrices_validates_view():
 
 def test_camera_is_a_pytree_and_vmaps():
     eyes = jnp.array([[0.0, 0.0, 3.0], [1.0, 0.0, 3.0]])
-    cams = jax.vmap(lambda e: C.make_camera(e, jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]), width=4, height=4))(eyes)
+    cams = jax.vmap(
+        lambda e: C.make_camera(e, jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]), width=4, height=4)
+    )(eyes)
     assert cams.view.shape == (2, 4, 4) and cams.width == 4
     leaves, tree = jax.tree_util.tree_flatten(cams)
     assert len(leaves) == 4

@@ -11,7 +11,16 @@ from diffcloth.render import raster as R
 
 @pytest.fixture(scope="module")
 def cam():
-    return C.make_camera((0.0, 0.0, 5.0), (0.0, 0.0, 0.0), (0, 1, 0), width=16, height=16, fov_y=60.0, near=1.0, far=20.0)
+    return C.make_camera(
+        (0.0, 0.0, 5.0),
+        (0.0, 0.0, 0.0),
+        (0, 1, 0),
+        width=16,
+        height=16,
+        fov_y=60.0,
+        near=1.0,
+        far=20.0,
+    )
 
 
 def test_frustum_planes_outward(cam):
@@ -45,7 +54,9 @@ def test_sphere_in_frustum(cam, center, radius, visible):
 def test_sphere_in_frustum_batched_and_bounding_sphere(cam):
     planes = K.frustum_planes(cam)
     centers = jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, 8.0]])
-    np.testing.assert_array_equal(K.sphere_in_frustum(centers, jnp.array([0.5, 0.5]), planes), [True, False])
+    np.testing.assert_array_equal(
+        K.sphere_in_frustum(centers, jnp.array([0.5, 0.5]), planes), [True, False]
+    )
     pts = jnp.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
     c, r = K.bounding_sphere(pts)
     assert np.all(np.linalg.norm(pts - c[None], axis=-1) <= float(r) + 1e-12)
@@ -56,7 +67,9 @@ TRI = jnp.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
 
 @pytest.mark.parametrize("projection", ["perspective", "orthographic", "isometric"])
 def test_backface(projection):
-    cam = C.make_camera((0.3, 0.2, 5.0), (0.0, 0.0, 0.0), (0, 1, 0), width=16, height=16, projection=projection)
+    cam = C.make_camera(
+        (0.3, 0.2, 5.0), (0.0, 0.0, 0.0), (0, 1, 0), width=16, height=16, projection=projection
+    )
     faces = jnp.array([[0, 1, 2], [0, 2, 1]])  # counter-clockwise seen from +z, then clockwise
     np.testing.assert_array_equal(K.facing_camera(TRI, faces, cam), [True, False])
     np.testing.assert_allclose(K.triangle_normals(TRI, faces)[0], [0, 0, 1], atol=1e-12)

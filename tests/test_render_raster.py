@@ -18,11 +18,15 @@ def pixel_camera(size=SIZE):
     view = C.look_at((0.0, 0.0, 5.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
     h = size / 2
     proj = C.orthographic(-h, h, -h, h, 0.1, 10.0)
-    return C.camera_from_matrices(view, proj, width=size, height=size, near=0.1, far=10.0, kind="orthographic")
+    return C.camera_from_matrices(
+        view, proj, width=size, height=size, near=0.1, far=10.0, kind="orthographic"
+    )
 
 
 def persp_camera(size=SIZE):
-    return C.make_camera((0.3, 0.2, 4.0), (0.0, 0.0, 0.0), (0, 1, 0), width=size, height=size, fov_y=40.0)
+    return C.make_camera(
+        (0.3, 0.2, 4.0), (0.0, 0.0, 0.0), (0, 1, 0), width=size, height=size, fov_y=40.0
+    )
 
 
 def quad(x0, x1, y0, y1, z=0.0):
@@ -152,10 +156,14 @@ def test_interior_gradients_match_finite_differences():
     eps = 1e-6
     for idx in [(0, 0), (1, 2), (2, 1), (3, 0), (2, 2)]:
         e = jnp.zeros_like(p).at[idx].set(eps)
-        fd = (_value_hard(p + e, f, c, cam, weights) - _value_hard(p - e, f, c, cam, weights)) / (2 * eps)
+        fd = (_value_hard(p + e, f, c, cam, weights) - _value_hard(p - e, f, c, cam, weights)) / (
+            2 * eps
+        )
         np.testing.assert_allclose(g_pos[idx], fd, rtol=1e-5, atol=1e-8)
     e = jnp.zeros_like(c).at[2, 1].set(eps)
-    fd = (_value_hard(p, f, c + e, cam, weights) - _value_hard(p, f, c - e, cam, weights)) / (2 * eps)
+    fd = (_value_hard(p, f, c + e, cam, weights) - _value_hard(p, f, c - e, cam, weights)) / (
+        2 * eps
+    )
     np.testing.assert_allclose(g_col[2, 1], fd, rtol=1e-6)
 
 
@@ -165,7 +173,9 @@ def _check_silhouette_gradient(base, faces, colors, camera, weights, moving, h=0
     g = float(jnp.sum(gp[:, 0] * moving))
 
     def loss(dx):
-        return float(jnp.sum(weights * render(base.at[:, 0].add(dx * moving), faces, colors, camera)))
+        return float(
+            jnp.sum(weights * render(base.at[:, 0].add(dx * moving), faces, colors, camera))
+        )
 
     fd = (loss(h) - loss(-h)) / (2 * h)
     assert abs(fd) > 1e-3, fd
@@ -179,7 +189,9 @@ def test_silhouette_gradient_translating_square(camera_fn):
     scale = 1.0 if cam.kind == "orthographic" else 0.12
     base = quad(-30.0, 4.3, -6.2, 7.7) * scale  # left part off-screen: coverage changes with x
     ones = jnp.ones((SIZE, SIZE, 4))
-    g, fd = _check_silhouette_gradient(base, QUAD_FACES, WHITE, cam, ones, jnp.ones(4), h=0.05 * scale)
+    g, fd = _check_silhouette_gradient(
+        base, QUAD_FACES, WHITE, cam, ones, jnp.ones(4), h=0.05 * scale
+    )
     if cam.kind == "orthographic":  # d(area)/dx = edge length (13.9 px) x 4 channels
         assert abs(g / 4 - 13.9) <= 1.0
     ramp = jnp.broadcast_to(jnp.linspace(0.0, 2.0, SIZE)[None, :, None], (SIZE, SIZE, 4))
@@ -192,7 +204,9 @@ def test_occlusion_edge_gradient():
     front = quad(-30.0, 3.6, -5.3, 6.4, z=1.0)
     pos = jnp.concatenate([front, back])
     faces = jnp.concatenate([QUAD_FACES, QUAD_FACES + 4])
-    colors = jnp.concatenate([jnp.tile(jnp.array([1.0, 0.2, 0.0]), (4, 1)), jnp.tile(jnp.array([0.0, 0.5, 1.0]), (4, 1))])
+    colors = jnp.concatenate(
+        [jnp.tile(jnp.array([1.0, 0.2, 0.0]), (4, 1)), jnp.tile(jnp.array([0.0, 0.5, 1.0]), (4, 1))]
+    )
     moving = jnp.array([1.0, 1, 1, 1, 0, 0, 0, 0])
     weights = jnp.ones((SIZE, SIZE, 4)).at[..., 3].set(0.0)
     g, fd = _check_silhouette_gradient(pos, faces, colors, cam, weights, moving)
@@ -225,7 +239,9 @@ def test_zero_area_triangles():
     good = jnp.array([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [0.0, 5.0, 0.0]])
     repeated = jnp.array([[1.0, 1.0, 0.5], [1.0, 1.0, 0.5], [4.0, -2.0, 0.5]])  # two equal vertices
     collinear = jnp.array([[-8.0, 0.0, 0.7], [0.0, 0.0, 0.7], [8.0, 0.0, 0.7]])
-    edge_on = jnp.array([[-3.0, 2.0, 1.0], [-3.0, 2.0, -1.0], [3.0, 2.0, 0.0]])  # same screen XY pair
+    edge_on = jnp.array(
+        [[-3.0, 2.0, 1.0], [-3.0, 2.0, -1.0], [3.0, 2.0, 0.0]]
+    )  # same screen XY pair
     pos = jnp.concatenate([good, repeated, collinear, edge_on])
     faces = jnp.arange(12).reshape(4, 3)
     colors = jnp.tile(jnp.array([[1.0, 0.0, 0.0]]), (12, 1)).at[3:].set(jnp.array([0.0, 1.0, 0.0]))
@@ -233,15 +249,21 @@ def test_zero_area_triangles():
     alone = render(good, faces[:1], colors[:3], cam)
     assert np.all(np.isfinite(img))
     np.testing.assert_allclose(np.asarray(img), np.asarray(alone), atol=1e-12)
-    g, _ = grad(pos, faces, colors, cam, jnp.linspace(0.0, 1.0, SIZE * SIZE * 4).reshape(SIZE, SIZE, 4))
+    g, _ = grad(
+        pos, faces, colors, cam, jnp.linspace(0.0, 1.0, SIZE * SIZE * 4).reshape(SIZE, SIZE, 4)
+    )
     assert np.all(np.isfinite(g)) and np.abs(g[:3]).max() > 0
     np.testing.assert_array_equal(np.asarray(g[3:]), 0.0)
 
 
 # ROBUSTNESS row 19: geometry straddling the near plane / behind the camera
 def test_near_plane_crossing_floor():
-    cam = C.make_camera((0.0, 0.0, 0.0), (0.0, -0.3, -1.0), (0, 1, 0), width=SIZE, height=SIZE, near=0.1, far=100.0)
-    floor = jnp.array([[-50.0, -1.0, 50.0], [50.0, -1.0, 50.0], [50.0, -1.0, -50.0], [-50.0, -1.0, -50.0]])
+    cam = C.make_camera(
+        (0.0, 0.0, 0.0), (0.0, -0.3, -1.0), (0, 1, 0), width=SIZE, height=SIZE, near=0.1, far=100.0
+    )
+    floor = jnp.array(
+        [[-50.0, -1.0, 50.0], [50.0, -1.0, 50.0], [50.0, -1.0, -50.0], [-50.0, -1.0, -50.0]]
+    )
     colors = jnp.ones((4, 3))
     frags = _frags(*pad(floor, QUAD_FACES, colors)[:2], cam)
     o, d = C.pixel_rays(cam)
@@ -263,10 +285,14 @@ def test_near_plane_crossing_floor():
 def test_camera_inside_cloth_bounding_box():
     cam = C.make_camera((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0, 1, 0), width=SIZE, height=SIZE)
     u, v = np.meshgrid(np.linspace(-2, 2, 4), np.linspace(-2, 2, 4))
-    pos = jnp.asarray(np.stack([u, 0.3 * np.sin(3 * u), v], -1).reshape(-1, 3))  # sheet through the eye
+    pos = jnp.asarray(
+        np.stack([u, 0.3 * np.sin(3 * u), v], -1).reshape(-1, 3)
+    )  # sheet through the eye
     idx = np.arange(16).reshape(4, 4)
     a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:], idx[1:, 1:]
-    faces = jnp.asarray(np.concatenate([np.stack([a, b, c], -1), np.stack([c, b, d], -1)]).reshape(-1, 3))
+    faces = jnp.asarray(
+        np.concatenate([np.stack([a, b, c], -1), np.stack([c, b, d], -1)]).reshape(-1, 3)
+    )
     img = render(pos, faces, jnp.ones((16, 3)), cam)
     g, _ = grad(pos, faces, jnp.ones((16, 3)), cam)
     assert np.all(np.isfinite(img)) and np.all(np.isfinite(g)) and float(img[..., 3].sum()) > 0
@@ -288,8 +314,15 @@ def test_gbuffer_composite_and_antialias():
     cam = pixel_camera()
     a = quad(-6.0, 2.0, -6.0, 2.0, z=1.0)
     b = quad(-2.0, 6.0, -2.0, 6.0, z=0.0)
-    ga = R.rasterize_gbuffer(a, QUAD_FACES, cam, {"color": jnp.tile(jnp.array([1.0, 0, 0]), (4, 1))})
-    gb = R.rasterize_gbuffer(b, QUAD_FACES, cam, {"color": jnp.tile(jnp.array([0, 1.0, 0]), (4, 1)), "uv": jnp.ones((4, 2))})
+    ga = R.rasterize_gbuffer(
+        a, QUAD_FACES, cam, {"color": jnp.tile(jnp.array([1.0, 0, 0]), (4, 1))}
+    )
+    gb = R.rasterize_gbuffer(
+        b,
+        QUAD_FACES,
+        cam,
+        {"color": jnp.tile(jnp.array([0, 1.0, 0]), (4, 1)), "uv": jnp.ones((4, 2))},
+    )
     g = R.composite(gb, ga)
     assert set(g.attributes) == {"color", "uv"}
     np.testing.assert_allclose(g.attributes["color"][16, 16], [1, 0, 0])
@@ -311,7 +344,11 @@ def test_vmap_over_cameras_and_float32():
         np.testing.assert_allclose(imgs[i], _render(p, f, c, cam), atol=1e-12)
     assert float(jnp.abs(imgs[0] - imgs[1]).max()) > 0.1
     f32 = C.make_camera(
-        jnp.array([0.0, 0.0, 4.0], jnp.float32), jnp.zeros(3, jnp.float32), up.astype(jnp.float32), width=8, height=8
+        jnp.array([0.0, 0.0, 4.0], jnp.float32),
+        jnp.zeros(3, jnp.float32),
+        up.astype(jnp.float32),
+        width=8,
+        height=8,
     )
     img = _render(p.astype(jnp.float32), f, c.astype(jnp.float32), f32)
     assert img.dtype == jnp.float32

@@ -15,7 +15,9 @@ SIZE = 32
 def pixel_camera():
     view = C.look_at((0.0, 0.0, 20.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
     proj = C.orthographic(-16.0, 16.0, -16.0, 16.0, 0.1, 40.0)
-    return C.camera_from_matrices(view, proj, width=SIZE, height=SIZE, near=0.1, far=40.0, kind="orthographic")
+    return C.camera_from_matrices(
+        view, proj, width=SIZE, height=SIZE, near=0.1, far=40.0, kind="orthographic"
+    )
 
 
 CAM = pixel_camera()
@@ -26,7 +28,12 @@ QUAD_FACES = jnp.array([[0, 1, 2], [0, 2, 3]])
 def _scene(center, radius, quad_z):
     """Premultiplied RGBA of a red sphere composited with a blue quad at depth quad_z."""
     sph = raycast_spheres(Sphere(center, radius), CAM, {"color": jnp.array([[1.0, 0.0, 0.0]])})
-    quad = R.rasterize_gbuffer(QUAD.at[:, 2].set(quad_z), QUAD_FACES, CAM, {"color": jnp.tile(jnp.array([0.0, 0.0, 1.0]), (4, 1))})
+    quad = R.rasterize_gbuffer(
+        QUAD.at[:, 2].set(quad_z),
+        QUAD_FACES,
+        CAM,
+        {"color": jnp.tile(jnp.array([0.0, 0.0, 1.0]), (4, 1))},
+    )
     g = R.composite(quad, sph)
     rgba = jnp.concatenate([g.attributes["color"], g.mask[..., None].astype(jnp.float64)], axis=-1)
     return R.antialias(rgba, g), g
@@ -40,7 +47,12 @@ def _sphere_only(center, radius):
 sphere_only = jax.jit(_sphere_only)
 scene = jax.jit(_scene)
 area_grad = jax.jit(jax.grad(lambda c, r: jnp.sum(_sphere_only(c, r)[0]), argnums=(0, 1)))
-red_grad = jax.jit(jax.grad(lambda c, r, z: jnp.sum(_scene(c, r, z)[0][..., 0] - _scene(c, r, z)[0][..., 2]), argnums=(0, 1)))
+red_grad = jax.jit(
+    jax.grad(
+        lambda c, r, z: jnp.sum(_scene(c, r, z)[0][..., 0] - _scene(c, r, z)[0][..., 2]),
+        argnums=(0, 1),
+    )
+)
 
 
 def test_silhouette_area_and_attributes():
@@ -52,8 +64,12 @@ def test_silhouette_area_and_attributes():
     assert abs(float(alpha.sum()) - area) < 0.01 * area
     pos, nrm = g.attributes["position"], g.attributes["normal"]
     m = np.asarray(g.mask)
-    np.testing.assert_allclose(np.linalg.norm(np.asarray(pos - center[None, None]), axis=-1)[m], 6.0, atol=1e-9)
-    np.testing.assert_allclose(np.asarray(nrm)[m], np.asarray((pos - center[None, None]) / 6.0)[m], atol=1e-9)
+    np.testing.assert_allclose(
+        np.linalg.norm(np.asarray(pos - center[None, None]), axis=-1)[m], 6.0, atol=1e-9
+    )
+    np.testing.assert_allclose(
+        np.asarray(nrm)[m], np.asarray((pos - center[None, None]) / 6.0)[m], atol=1e-9
+    )
     np.testing.assert_allclose(np.asarray(g.depth)[m], 20.0 - np.asarray(pos[..., 2])[m], atol=1e-9)
     assert np.all(np.asarray(nrm)[m][:, 2] > 0)  # visible hemisphere faces the camera
 
@@ -61,8 +77,11 @@ def test_silhouette_area_and_attributes():
 def test_silhouette_gradients():
     center, radius = jnp.array([0.3, -0.2, 0.0]), jnp.asarray(6.0)
     gc, gr = area_grad(center, radius)
-    h = 0.25  # the antialiased area of a curved rim is exact only to first order: FD over a few steps
-    fd_r = (float(sphere_only(center, radius + h)[0].sum()) - float(sphere_only(center, radius - h)[0].sum())) / (2 * h)
+    h = 0.25  # antialiased area of a curved rim is exact to first order only: FD over a few steps
+    fd_r = (
+        float(sphere_only(center, radius + h)[0].sum())
+        - float(sphere_only(center, radius - h)[0].sum())
+    ) / (2 * h)
     # curved rims: pixel-pair antialiasing is first-order, AD within 10% of FD and the perimeter
     np.testing.assert_allclose(float(gr), fd_r, rtol=0.1)
     np.testing.assert_allclose(float(gr), 2 * np.pi * 6.0, rtol=0.12)  # d(area)/dr = perimeter
@@ -71,7 +90,10 @@ def test_silhouette_gradients():
     edge = jnp.array([-15.0, 1.0, 0.0])
     gc, _ = area_grad(edge, radius)
     e = jnp.array([h, 0.0, 0.0])
-    fd = (float(sphere_only(edge + e, radius)[0].sum()) - float(sphere_only(edge - e, radius)[0].sum())) / (2 * h)
+    fd = (
+        float(sphere_only(edge + e, radius)[0].sum())
+        - float(sphere_only(edge - e, radius)[0].sum())
+    ) / (2 * h)
     assert fd > 1.0
     np.testing.assert_allclose(float(gc[0]), fd, rtol=0.05)
 
@@ -110,6 +132,7 @@ def test_perspective_silhouette_and_empty():
         assert np.all(np.asarray(g.mask)[hits])
         if i == 1:  # the nearer small sphere wins where both are hit
             assert np.all(np.asarray(g.surface_id)[hits] == 1)
+
     # behind the camera: nothing drawn, gradients zero and finite
     def behind(c):
         g = raycast_spheres(Sphere(c, jnp.asarray(1.0)), cam)

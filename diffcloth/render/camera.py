@@ -9,7 +9,7 @@ Projections (SEEDS.md section 6):
   perspective / frustum              converging projectors
   orthographic                       parallel projectors perpendicular to the view plane
   oblique (cavalier, cabinet)        parallel projectors at an angle: receding axis drawn at
-                                     `alpha` degrees with foreshortening 1 (cavalier) or 1/2 (cabinet)
+                                     `alpha` degrees, foreshortening 1 (cavalier) or 1/2 (cabinet)
   axonometric (isometric, dimetric,  orthographic from a direction that foreshortens the three
   trimetric)                         world axes equally / two equally / all differently
   multiview (front, top, side)       orthographic along a principal axis
@@ -84,7 +84,9 @@ def look_at(eye, target, up):
         if np.linalg.norm(f) <= 1e-12:
             raise ValueError(f"look_at: eye {e.tolist()} equals target (singular view)")
         if np.linalg.norm(np.cross(f / np.linalg.norm(f), u)) <= 1e-9:
-            raise ValueError(f"look_at: up {u.tolist()} is parallel to the view direction (singular view)")
+            raise ValueError(
+                f"look_at: up {u.tolist()} is parallel to the view direction (singular view)"
+            )
     f = safe_normalize(target - eye)
     s = safe_normalize(jnp.cross(f, up))
     u = jnp.cross(s, f)
@@ -114,8 +116,13 @@ def view_from_vrp(vrp, vpn, vup):
     vrp, vpn, vup = (jnp.asarray(v, dtype) for v in (vrp, vpn, vup))
     if _concrete(vpn, vup):
         n_, u_ = np.asarray(vpn, np.float64), np.asarray(vup, np.float64)
-        if np.linalg.norm(n_) <= 1e-12 or np.linalg.norm(np.cross(n_ / np.linalg.norm(n_), u_)) <= 1e-9:
-            raise ValueError(f"view_from_vrp: vpn {n_.tolist()} is zero or parallel to vup {u_.tolist()}")
+        if (
+            np.linalg.norm(n_) <= 1e-12
+            or np.linalg.norm(np.cross(n_ / np.linalg.norm(n_), u_)) <= 1e-9
+        ):
+            raise ValueError(
+                f"view_from_vrp: vpn {n_.tolist()} is zero or parallel to vup {u_.tolist()}"
+            )
     n = safe_normalize(vpn)
     u = safe_normalize(jnp.cross(vup, n))
     v = jnp.cross(n, u)
@@ -135,7 +142,7 @@ def _check_near_far(name, near, far, *, perspective):
 
 
 def perspective(fov_y_degrees, aspect, near, far):
-    """gluPerspective: vertical field of view in degrees, aspect = width / height, near/far > 0 in m.
+    """gluPerspective: vertical fov in degrees, aspect = width / height, near/far > 0 in m.
 
     Raises:
       ValueError: fov outside (0, 180), aspect <= 0, near <= 0 or near >= far.
@@ -236,7 +243,9 @@ def cavalier(left, right, bottom, top, near, far, depth_ref=0.0, alpha_degrees=4
     return oblique(alpha_degrees, 1.0, left, right, bottom, top, near, far, depth_ref)
 
 
-def cabinet(left, right, bottom, top, near, far, depth_ref=0.0, alpha_degrees=OBLIQUE["cabinet"][1]):
+def cabinet(
+    left, right, bottom, top, near, far, depth_ref=0.0, alpha_degrees=OBLIQUE["cabinet"][1]
+):
     """Cabinet oblique projection (receding axis at half length, 63.4 degrees)."""
     return oblique(alpha_degrees, 0.5, left, right, bottom, top, near, far, depth_ref)
 
@@ -248,7 +257,9 @@ def axonometric_view(kind: str, target, distance):
     Use with an orthographic projection.
     """
     if kind not in VIEW_DIRECTIONS:
-        raise ValueError(f"axonometric_view: kind must be one of {tuple(VIEW_DIRECTIONS)}, got {kind!r}")
+        raise ValueError(
+            f"axonometric_view: kind must be one of {tuple(VIEW_DIRECTIONS)}, got {kind!r}"
+        )
     direction, up = VIEW_DIRECTIONS[kind]
     dtype = _dtype(target, distance)
     d = jnp.asarray(direction, dtype)
@@ -323,7 +334,9 @@ def make_camera(
     """
     _check_size(width, height)
     if projection not in PROJECTION_KINDS:
-        raise ValueError(f"make_camera: projection must be one of {PROJECTION_KINDS}, got {projection!r}")
+        raise ValueError(
+            f"make_camera: projection must be one of {PROJECTION_KINDS}, got {projection!r}"
+        )
     if _concrete(fov_y) and not 0.0 < float(fov_y) < 180.0:
         raise ValueError(f"make_camera: fov_y must be in (0, 180) degrees, got {float(fov_y)}")
     _check_near_far("make_camera", near, far, perspective=projection == "perspective")
@@ -359,7 +372,9 @@ def make_camera(
     )
 
 
-def camera_from_matrices(view, projection, *, width, height, near, far, kind="perspective") -> Camera:
+def camera_from_matrices(
+    view, projection, *, width, height, near, far, kind="perspective"
+) -> Camera:
     """A camera from explicit matrices, validated (view must be rigid: orthonormal rotation).
 
     Raises:
@@ -368,7 +383,9 @@ def camera_from_matrices(view, projection, *, width, height, near, far, kind="pe
     """
     _check_size(width, height)
     if kind not in PROJECTION_KINDS:
-        raise ValueError(f"camera_from_matrices: kind must be one of {PROJECTION_KINDS}, got {kind!r}")
+        raise ValueError(
+            f"camera_from_matrices: kind must be one of {PROJECTION_KINDS}, got {kind!r}"
+        )
     _check_near_far("camera_from_matrices", near, far, perspective=kind == "perspective")
     if _concrete(view, projection):
         v, p = np.asarray(view, np.float64), np.asarray(projection, np.float64)
@@ -398,7 +415,7 @@ def camera_from_matrices(view, projection, *, width, height, near, far, kind="pe
 
 
 def eye_position(camera: Camera):
-    """(3,) world position of the eye (centre of projection for perspective; view origin otherwise)."""
+    """(3,) world position of the eye (perspective: centre of projection; else view origin)."""
     rot = camera.view[:3, :3]
     return -(rot.T @ camera.view[:3, 3])
 

@@ -14,8 +14,8 @@ import jax.numpy as jnp
 
 from diffcloth._math import safe_div, safe_normalize, safe_sqrt
 from diffcloth.render.camera import Camera, pixel_rays
-from diffcloth.render.rays import ray_sphere
 from diffcloth.render.raster import BACKGROUND_DEPTH, GBuffer
+from diffcloth.render.rays import ray_sphere
 from diffcloth.shapes import Sphere
 
 
@@ -36,7 +36,9 @@ def raycast_spheres(spheres: Sphere, camera: Camera, attributes: dict | None = N
     dtype = camera.view.dtype
     origins, dirs = pixel_rays(camera)
     centers, radii = sp.center.astype(dtype), sp.radius.astype(dtype)
-    t, hit, disc = jax.vmap(lambda c, r: ray_sphere(origins, dirs, c[None, None], r))(centers, radii)
+    t, hit, disc = jax.vmap(lambda c, r: ray_sphere(origins, dirs, c[None, None], r))(
+        centers, radii
+    )
     pts = origins[None] + t[..., None] * dirs[None]  # (s, H, W, 3)
     vdepth = -(jnp.einsum("k,shwk->shw", camera.view[2, :3], pts) + camera.view[2, 3])
     hit = hit & (jax.lax.stop_gradient(vdepth) <= jax.lax.stop_gradient(camera.far))
@@ -93,8 +95,12 @@ def _sphere_crossings(g, which, mask, depth, sid):
         # own sphere's g at the partner pixel
         g_a_at_b = jnp.take_along_axis(g[ghi], which[lo][None], axis=0)[0]
         g_b_at_a = jnp.take_along_axis(g[glo], which[hi][None], axis=0)[0]
-        ok_a = differ & a_front & mask[lo] & (jax.lax.stop_gradient(g_a_at_b) <= 0) & prefer[axis][lo]
-        ok_b = differ & ~a_front & mask[hi] & (jax.lax.stop_gradient(g_b_at_a) <= 0) & prefer[axis][hi]
+        ok_a = (
+            differ & a_front & mask[lo] & (jax.lax.stop_gradient(g_a_at_b) <= 0) & prefer[axis][lo]
+        )
+        ok_b = (
+            differ & ~a_front & mask[hi] & (jax.lax.stop_gradient(g_b_at_a) <= 0) & prefer[axis][hi]
+        )
         t_a = safe_div(gs[lo], gs[lo] - g_a_at_b)
         t_b = safe_div(gs[hi], gs[hi] - g_b_at_a)
         t_a = jnp.where(ok_a, jnp.clip(t_a, 0.0, 1.0), -1.0)
