@@ -155,8 +155,8 @@ class SimConfig:
     wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
     collision_margin: float = 0.0
     newton_iters: int = 3
-    cg_iters: int = 60
-    cg_tol: float = 1e-6
+    cg_iters: int = 200
+    cg_tol: float = 1e-5
 
 
 @dataclasses.dataclass(frozen=True)

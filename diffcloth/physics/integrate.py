@@ -47,32 +47,34 @@ class Contacts:
     plane: jax.Array
 
 
-def cg(matvec, b, *, tol, maxiter):
-    """Matrix-free conjugate gradients for a symmetric positive (semi-)definite operator.
+def cg(matvec, b, *, tol, maxiter, precond=None):
+    """Matrix-free (Jacobi-preconditioned) conjugate gradients for a symmetric positive operator.
 
     A plain while-loop (no custom_linear_solve inside), stopping at |r| <= tol |b| or maxiter.
-    Returns (solution, number of iterations).
+    `precond` is the inverse diagonal (same shape as b) or None. Returns (solution, iterations).
     """
+    pre = (lambda r: r) if precond is None else (lambda r: precond * r)
     bb = jnp.sum(b * b)
     stop = (tol * tol) * bb
 
     def cond(c):
-        _, r, _, rr, k = c
-        return (rr > stop) & (k < maxiter)
+        _, r, _, _, k = c
+        return (jnp.sum(r * r) > stop) & (k < maxiter)
 
     def body(c):
-        x, r, p, rr, k = c
+        x, r, p, rz, k = c
         ap = matvec(p)
         pap = jnp.sum(p * ap)
-        alpha = jnp.where(pap > 0, rr / jnp.where(pap > 0, pap, 1.0), 0.0)
+        alpha = jnp.where(pap > 0, rz / jnp.where(pap > 0, pap, 1.0), 0.0)
         x = x + alpha * p
         r = r - alpha * ap
-        rr_new = jnp.sum(r * r)
-        beta = jnp.where(rr > 0, rr_new / jnp.where(rr > 0, rr, 1.0), 0.0)
-        return x, r, r + beta * p, rr_new, k + 1
+        z = pre(r)
+        rz_new = jnp.sum(r * z)
+        beta = jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0)
+        return x, r, z + beta * p, rz_new, k + 1
 
-    x0 = jnp.zeros_like(b)
-    x, _, _, _, k = jax.lax.while_loop(cond, body, (x0, b, b, bb, 0))
+    z0 = pre(b)
+    x, _, _, _, k = jax.lax.while_loop(cond, body, (jnp.zeros_like(b), b, z0, jnp.sum(b * z0), 0))
     return x, k
 
 
@@ -105,6 +107,21 @@ def bicgstab(matvec, b, *, tol, maxiter):
     return x
 
 
+def _stiffness_diagonal(net, material):
+    """(rows, cols) sum of the stiffnesses (N/m) of the springs at each node, plus bending."""
+    kh = material.stretch * net.weight_h
+    kv = material.stretch * net.weight_v
+    kd = material.shear * net.weight_d
+    p = lambda a, t, b, l, r: jnp.pad(a, ((t, b), (l, r)))
+    out = p(kh, 0, 0, 0, 1) + p(kh, 0, 0, 1, 0) + p(kv, 0, 1, 0, 0) + p(kv, 1, 0, 0, 0)
+    out = out + p(kd, 0, 1, 0, 1) + p(kd, 1, 0, 1, 0) + p(kd, 0, 1, 1, 0) + p(kd, 1, 0, 0, 1)
+    bh = material.bend * net.weight_bh
+    bv = material.bend * net.weight_bv
+    out = out + p(bh, 0, 0, 0, 2) + 4.0 * p(bh, 0, 0, 1, 1) + p(bh, 0, 0, 2, 0)
+    out = out + p(bv, 0, 2, 0, 0) + 4.0 * p(bv, 1, 1, 0, 0) + p(bv, 2, 0, 0, 0)
+    return out
+
+
 # Substeps work on planar arrays (3, rows, cols); free is (rows, cols) bool, mass (rows, cols).
 
 
@@ -132,6 +149,11 @@ def _implicit_substep(net, sim, material, x, v, mass, free, h, pin_v):
     ng = jax.lax.stop_gradient
     net_ng, mat_ng, x_ng, h_ng, m_ng = ng(net), ng(material), ng(x), ng(h), ng(safe_mass)
 
+    # Jacobi preconditioner: m + (h^2 + h c) * (sum of incident spring stiffnesses + bending).
+    kdiag = _stiffness_diagonal(net_ng, mat_ng)
+    diag = m_ng + ((h_ng * h_ng + h_ng * mat_ng.damping) * kdiag)[None]
+    precond = jnp.where(free3, 1.0 / diag, 0.0)
+
     def newton(res, v1):
         def body(_, v1):
             r = res(v1)
@@ -142,7 +164,13 @@ def _implicit_substep(net, sim, material, x, v, mass, free, h, pin_v):
                 df = _internal_force_differential(net_ng, mat_ng, xn, h_ng * h_ng * d, h_ng * d)
                 return jnp.where(free3, m_ng * d - df, 0.0)
 
-            delta, _ = cg(matvec, -jnp.where(free3, r, 0.0), tol=sim.cg_tol, maxiter=sim.cg_iters)
+            delta, _ = cg(
+                matvec,
+                -jnp.where(free3, r, 0.0),
+                tol=sim.cg_tol,
+                maxiter=sim.cg_iters,
+                precond=precond,
+            )
             return v1 + jnp.where(free3, delta, 0.0)
 
         return jax.lax.fori_loop(0, sim.newton_iters, body, v1)

@@ -48,8 +48,8 @@ class SimSettings:
     num_substeps: int = dataclasses.field(default=16, metadata={"static": True})
     integrator: str = dataclasses.field(default="symplectic", metadata={"static": True})
     newton_iters: int = dataclasses.field(default=3, metadata={"static": True})
-    cg_iters: int = dataclasses.field(default=60, metadata={"static": True})
-    cg_tol: float = dataclasses.field(default=1e-6, metadata={"static": True})
+    cg_iters: int = dataclasses.field(default=200, metadata={"static": True})
+    cg_tol: float = dataclasses.field(default=1e-5, metadata={"static": True})
 
     @property
     def h(self):
@@ -81,8 +81,8 @@ def make_sim(
     integrator: str = "symplectic",
     collision_margin: float = 0.0,
     newton_iters: int = 3,
-    cg_iters: int = 60,
-    cg_tol: float = 1e-6,
+    cg_iters: int = 200,
+    cg_tol: float = 1e-5,
     dtype=None,
 ) -> SimSettings:
     """Validated constructor for SimSettings (see its attributes).
