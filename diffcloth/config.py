@@ -238,7 +238,7 @@ def _parse_net(t: Mapping[str, Any]) -> NetConfig:
 def _parse_material(t: Mapping[str, Any]) -> MaterialConfig:
     check_keys(t, _fields(MaterialConfig), "material")
     values = {}
-    for name, (lo, inclusive, unit, default) in MATERIAL_FIELDS.items():
+    for name, (lo, inclusive, unit, _default) in MATERIAL_FIELDS.items():
         if name in t:
             v = t[name]
             bad = isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)
