@@ -1,4 +1,4 @@
-"""Command line: `diffcloth simulate CONFIG --out DIR` (also `python -m diffcloth`)."""
+"""Command line: `diffcloth simulate | fit CONFIG --out DIR` (also `python -m diffcloth`)."""
 
 from __future__ import annotations
 
@@ -80,6 +80,29 @@ def _simulate(args) -> int:
     return 0
 
 
+def _fit(args) -> int:
+    import jax
+
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    from diffcloth.config import ConfigError
+    from diffcloth.experiment import run_fit_config
+
+    print(f"diffcloth fit {args.config} -> {args.out}", flush=True)
+    try:
+        summary = run_fit_config(args.config, args.out, smoke=args.smoke, steps=args.steps)
+    except (ConfigError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    for name, row in summary["params"].items():
+        err = row.get("relative_error")
+        tail = f"  relative error {err:.2%}" if err is not None else ""
+        print(f"  {name}: initial {row['initial']}  fitted {row['fitted']}{tail}")
+    print(f"loss {summary['loss']:.4g} after {summary['iterations']} steps, "
+          f"{summary['total_s']:.1f} s in all; wrote {args.out}/report.md")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="diffcloth", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -95,6 +118,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="only warn when dt/num_substeps exceeds the explicit stability estimate",
     )
     p.set_defaults(func=_simulate)
+    f = sub.add_parser("fit", help="fit scene parameters to target images; write DIR/report.md")
+    f.add_argument("config", help="scene + [fit] TOML (e.g. configs/drape_fit.toml)")
+    f.add_argument("--out", required=True, help="output folder")
+    f.add_argument("--steps", type=int, default=None, help="override [fit] steps")
+    f.add_argument("--smoke", action="store_true", help="tiny sizes, 2 steps (CI)")
+    f.add_argument("--x64", action="store_true", help="fit in float64")
+    f.set_defaults(func=_fit)
     return parser
 
 

@@ -21,7 +21,10 @@ from diffcloth.physics.material import MATERIAL_FIELDS, material_range
 from diffcloth.physics.net import PIN_PRESETS
 from diffcloth.physics.state import INTEGRATORS
 
-PASSTHROUGH_SECTIONS = ("camera", "cameras", "lights", "render", "fit", "truth", "bodies", "output")
+PASSTHROUGH_SECTIONS = (
+    "camera", "cameras", "lights", "render", "appearance", "fit", "truth", "bodies", "coupling",
+    "output",
+)
 PHYSICS_SECTIONS = ("net", "material", "sim", "spheres", "planes")
 
 _MISSING = object()

@@ -23,6 +23,14 @@ from diffcloth.fit.loop import (
     fit_params,
     load_checkpoint,
 )
+from diffcloth.fit.scene_fit import (
+    LOSSES,
+    default_constraint,
+    fit,
+    make_targets,
+    scene_identifiability,
+    video_loss,
+)
 from diffcloth.fit.losses import (
     absolute_error,
     blur,
@@ -36,6 +44,12 @@ from diffcloth.fit.losses import (
 )
 
 __all__ = [
+    "LOSSES",
+    "default_constraint",
+    "fit",
+    "make_targets",
+    "scene_identifiability",
+    "video_loss",
     "Bounded",
     "Constraint",
     "FitResult",
