@@ -98,6 +98,39 @@ class GBuffer(NamedTuple):
     front_facing: jax.Array
 
 
+# ----------------------------------------------------------------------------- helpers
+
+
+def _cumsum(x):
+    # jnp.cumsum / lax.cummax lower to reduce_window on CPU, ~10x slower than a log-depth scan
+    return jax.lax.associative_scan(jnp.add, x)
+
+
+def _cummax(x):
+    return jax.lax.associative_scan(jnp.maximum, x)
+
+
+def _materialize(x):
+    """x itself, computed once. XLA's CPU fusion otherwise inlines cheap per-triangle producers
+    into per-pixel gathers and recomputes them for every pixel (optimization_barrier is removed
+    before fusion); a scatter's result is always materialized. Differentiable."""
+    n = x.shape[0]
+    return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)
+
+
+def _compact(flags, size: int):
+    """Indices of the first `size` True entries of a 1-D bool array (padded with 0) and a
+    (size,) bool telling which are real."""
+    n = flags.shape[0]
+    rank = _cumsum(flags.astype(jnp.int32)) - 1
+    idx = (
+        jnp.zeros((size,), jnp.int32)
+        .at[jnp.where(flags, rank, size)]
+        .set(jnp.arange(n, dtype=jnp.int32), mode="drop")
+    )
+    return idx, jnp.arange(size) <= rank[-1]
+
+
 # ----------------------------------------------------------------------------- topology
 
 
@@ -264,12 +297,12 @@ def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int):
     dtype = E.dtype
     near, far = jax.lax.stop_gradient(camera.near), jax.lax.stop_gradient(camera.far)
     nx, ntiles = _tile_counts(s, tile)
-    ends = jnp.cumsum(ntiles)
+    ends = _cumsum(ntiles)
     starts = ends - ntiles
     tri_ids = jnp.arange(m, dtype=jnp.int32)
     owner = jnp.full((max_tiles,), -1, jnp.int32)
     owner = owner.at[jnp.where(ntiles > 0, starts, max_tiles)].max(tri_ids, mode="drop")
-    owner = jax.lax.cummax(owner, axis=0)
+    owner = _cummax(owner)
     slot = jnp.arange(max_tiles, dtype=jnp.int32)
     tri = jnp.maximum(owner, 0)
     local = slot - starts[tri]
@@ -315,55 +348,41 @@ def _silhouette(s: _Setup, neighbors):
     return (neighbors < 0) | ~s.valid[nb] | (s.front[nb] != s.front[:, None])
 
 
-def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int):
-    """(H, W, 4) fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
-    silhouette lies, set only on the nearer pixel of each neighbouring pair showing different
-    triangles (-1 elsewhere).
+def _reach(s: _Setup, neighbors, walk: int):
+    """(m, 3) silhouette flags and (m,) bool: a silhouette edge lies on the triangle or on one
+    reachable from it across at most `walk` internal (non-silhouette) edges."""
+    silm = _silhouette(s, neighbors)
+    nb = jnp.maximum(neighbors, 0)
+    reach = jnp.any(silm, axis=-1)
+    for _ in range(walk):
+        reach = reach | jnp.any(~silm & reach[nb], axis=-1)
+    return silm, reach
 
-    Walks from the front pixel's triangle across internal edges (up to `walk` further triangles)
-    along the segment to the neighbour's centre and stops at the first silhouette edge. The
-    search has no gradient; the crossing of the edge found is recomputed differentiably.
+
+def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: int):
+    """Silhouette crossing for pixel pairs given as arrays of any (common) shape.
+
+    start: front triangle; active: search here; a_front: the first pixel of the pair (at (px,
+    py)) is the nearer one; vertical: the partner is below (else to the right). Returns the
+    fraction t in [0, 1] from the front pixel's centre toward the back one's where the silhouette
+    edge is crossed (differentiable), -1 where none is found or the edge belongs to the other
+    pair direction.
     """
     m = s.edge.shape[0]
     dtype = s.edge.dtype
-    H, W = tri.shape
-    table = jax.lax.stop_gradient(jnp.concatenate([s.edge, s.origin], axis=-1))  # (m, 11)
-    sil = _silhouette(s, neighbors).reshape(-1)
-    nbr = jnp.maximum(neighbors, 0).reshape(-1)
-    ids = jnp.where(ok, tri, -1)
-    big = jnp.asarray(BACKGROUND_DEPTH, dtype)
-    # pair partner to the right (orientation 0) and below (orientation 1), padded as background
-    ids_n = jnp.stack(
-        [
-            jnp.pad(ids[:, 1:], ((0, 0), (0, 1)), constant_values=-1),
-            jnp.pad(ids[1:], ((0, 1), (0, 0)), constant_values=-1),
-        ]
-    )
-    dep_n = jnp.stack(
-        [
-            jnp.pad(depth[:, 1:], ((0, 0), (0, 1)), constant_values=big),
-            jnp.pad(depth[1:], ((0, 1), (0, 0)), constant_values=big),
-        ]
-    )
-    a_front = depth[None] < dep_n  # the pixel itself is the nearer one
-    pair = ids[None] != ids_n
-    inner = jnp.stack(
-        [jnp.ones((H, W), bool).at[:, -1].set(False), jnp.ones((H, W), bool).at[-1].set(False)]
-    )
-    start = jnp.where(a_front, ids[None], ids_n)
-    active = pair & inner & (start >= 0)
+    table = _materialize(jax.lax.stop_gradient(jnp.concatenate([s.edge, s.origin], axis=-1)))
     one = jnp.ones((), dtype)
-    ux = jnp.asarray([1.0, 0.0], dtype)[:, None, None]
-    uy = jnp.asarray([0.0, 1.0], dtype)[:, None, None]
-    sx = X[None] + jnp.where(a_front, 0.0, ux)  # front pixel centre
-    sy = Y[None] + jnp.where(a_front, 0.0, uy)
-    dx = jnp.where(a_front, one, -one) * ux  # direction from front to back
-    dy = jnp.where(a_front, one, -one) * uy
-    shape = (2, H, W)
+    ux = jnp.where(vertical, 0.0, one)
+    uy = jnp.where(vertical, one, 0.0)
+    sx = px + jnp.where(a_front, 0.0, ux)  # front pixel centre
+    sy = py + jnp.where(a_front, 0.0, uy)
+    sgn = jnp.where(a_front, one, -one)
+    dx, dy = sgn * ux, sgn * uy  # direction from front to back
+    shape = start.shape
 
     def level(carry, _):
         cur, done, found, sel = carry
-        tab = table[cur]  # (2, H, W, 11)
+        tab = table[cur]  # (..., 11)
         lx, ly = sx - tab[..., 9], sy - tab[..., 10]
         best = jnp.full(shape, jnp.inf, dtype)
         k = jnp.zeros(shape, jnp.int32)
@@ -388,15 +407,97 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int):
 
     cur = jnp.maximum(start, 0)
     init = (cur, ~active, jnp.zeros(shape, bool), cur * 3)
-    (_, _, found, sel), _ = jax.lax.scan(level, init, None, length=walk + 1)
-    r = s.edge.reshape(m * 3, 3)[sel]  # (2, H, W, 3) differentiable row of the edge found
+    if walk == 0:
+        (_, _, found, sel), _ = level(init, None)
+    else:
+        (_, _, found, sel), _ = jax.lax.scan(level, init, None, length=walk + 1)
+    r = s.edge.reshape(m * 3, 3)[sel]  # (..., 3) differentiable row of the edge found
     o = s.origin[sel // 3]
     ef = r[..., 0] * (sx - o[..., 0]) + r[..., 1] * (sy - o[..., 1]) + r[..., 2]
     slope = -(dx * r[..., 0] + dy * r[..., 1])
     # as nvdiffrast: an edge is handled by the pair direction it is most perpendicular to
     ar0, ar1 = jnp.abs(jax.lax.stop_gradient(r[..., 0])), jnp.abs(jax.lax.stop_gradient(r[..., 1]))
-    found = found & jnp.stack([ar0[0] >= ar1[0], ar1[1] > ar0[1]])
-    t = jnp.where(found, jnp.clip(safe_div(ef, jnp.where(found, slope, 1.0)), 0.0, 1.0), -1.0)
+    found = found & jnp.where(vertical, ar1 > ar0, ar0 >= ar1)
+    return jnp.where(found, jnp.clip(safe_div(ef, jnp.where(found, slope, 1.0)), 0.0, 1.0), -1.0)
+
+
+def default_silhouette_budget(width: int, height: int) -> int:
+    """Default number of pixel pairs searched for silhouettes in the compact path."""
+    return int(max(256, width * height // 16))
+
+
+def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: int | None):
+    """(H, W, 4) fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
+    silhouette lies, set only on the nearer pixel of each neighbouring pair showing different
+    triangles (-1 elsewhere).
+
+    Walks from the front pixel's triangle across internal edges (up to `walk` further triangles)
+    along the segment to the neighbour's centre and stops at the first silhouette edge. Only
+    pairs whose front triangle has a silhouette edge within reach are searched; they are
+    compacted into a static list of `budget` pairs (a full-image search runs instead when more
+    pairs need it). The search has no gradient; the crossing of the edge found is recomputed
+    differentiably.
+    """
+    H, W = tri.shape
+    silm, reach = _reach(s, neighbors, walk)
+    sil = _materialize(silm.reshape(-1))
+    reach = _materialize(reach)
+    nbr = jnp.maximum(neighbors, 0).reshape(-1)
+    ids = jnp.where(ok, tri, -1)
+    big = jnp.asarray(BACKGROUND_DEPTH, depth.dtype)
+    # pair partner to the right (orientation 0) and below (orientation 1), padded as background
+    ids_n = jnp.stack(
+        [
+            jnp.pad(ids[:, 1:], ((0, 0), (0, 1)), constant_values=-1),
+            jnp.pad(ids[1:], ((0, 1), (0, 0)), constant_values=-1),
+        ]
+    )
+    dep_n = jnp.stack(
+        [
+            jnp.pad(depth[:, 1:], ((0, 0), (0, 1)), constant_values=big),
+            jnp.pad(depth[1:], ((0, 1), (0, 0)), constant_values=big),
+        ]
+    )
+    a_front = depth[None] < dep_n  # the pixel itself is the nearer one
+    start = jnp.where(a_front, ids[None], ids_n)
+    # (pairs with the partner outside the image have ids_n = -1 but are excluded by `inner`)
+    inner = jnp.stack(
+        [jnp.ones((H, W), bool).at[:, -1].set(False), jnp.ones((H, W), bool).at[-1].set(False)]
+    )
+    active = (ids[None] != ids_n) & inner & (start >= 0) & reach[jnp.maximum(start, 0)]
+    vertical = jnp.arange(2)[:, None, None] == 1
+
+    def full(_):
+        return _search(s, sil, nbr, start, active, a_front, vertical, X[None], Y[None], walk)
+
+    n = 2 * H * W
+    K = n if budget is None else min(int(budget), n)
+
+    def compact(_):
+        flat = active.reshape(-1)
+        idx, act = _compact(flat, K)
+        rem = idx % (H * W)
+        py = (rem // W).astype(depth.dtype)
+        px = (rem % W).astype(depth.dtype)
+        t = _search(
+            s,
+            sil,
+            nbr,
+            start.reshape(-1)[idx],
+            act,
+            a_front.reshape(-1)[idx],
+            idx >= H * W,
+            px,
+            py,
+            walk,
+        )
+        out = jnp.full((n,), -1.0, t.dtype).at[jnp.where(act, idx, n)].set(t, mode="drop")
+        return out.reshape(2, H, W)
+
+    if K >= n:
+        t = full(None)
+    else:
+        t = jax.lax.cond(jnp.sum(active) <= K, compact, full, None)
     t_a = jnp.where(a_front, t, -1.0)  # stored on this pixel (+x / +y slot)
     t_b = jnp.where(a_front, -1.0, t)  # stored on the partner (-x / -y slot)
     minus_x = jnp.pad(t_b[0, :, :-1], ((0, 0), (1, 0)), constant_values=-1.0)
@@ -404,7 +505,7 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int):
     return jnp.stack([t_a[0], minus_x, t_a[1], minus_y], axis=-1)
 
 
-def _resolve(s: _Setup, ids, camera: Camera, neighbors, walk: int):
+def _resolve(s: _Setup, ids, camera: Camera, neighbors, walk: int, budget: int | None):
     H, W = camera.height, camera.width
     dtype = s.edge.dtype
     ids = ids.reshape(H, W)
@@ -422,7 +523,7 @@ def _resolve(s: _Setup, ids, camera: Camera, neighbors, walk: int):
     bary = jnp.stack([jnp.where(ok, ek * inv, 0.0) for ek in e], axis=-1)
     depth = bary[..., 0] * dv[..., 0] + bary[..., 1] * dv[..., 1] + bary[..., 2] * dv[..., 2]
     depth = jnp.where(ok, depth, BACKGROUND_DEPTH)
-    cross = _crossings(s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk)
+    cross = _crossings(s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk, budget)
     return Fragments(
         triangle_id=jnp.where(ok, ids, -1).astype(jnp.int32),
         barycentric=bary,
@@ -443,6 +544,7 @@ def rasterize(
     tile_size: int = 2,
     max_tiles: int | None = None,
     silhouette_walk: int = 1,
+    silhouette_budget: int | None = None,
 ) -> Fragments:
     """Visible triangle, perspective-correct barycentrics and depth for every pixel.
 
@@ -458,6 +560,9 @@ def rasterize(
       tile_size, max_tiles: static raster window size and window budget (see module doc).
       silhouette_walk: how many triangles beyond the visible one the silhouette search may cross
         along each neighbour segment (static; sub-pixel triangles need 1-2).
+      silhouette_budget: static size of the compacted list of pixel pairs searched for
+        silhouettes (default `default_silhouette_budget`: H W / 16); when a frame needs more, a
+        full-image search runs instead (same result, slower). >= 2 H W: always full-image.
     Returns:
       Fragments.
     """
@@ -476,9 +581,11 @@ def rasterize(
         neighbors = edge_neighbors(faces)
     if max_tiles is None:
         max_tiles = default_max_tiles(faces.shape[0], camera.width, camera.height, tile_size)
-    s = _setup(positions, faces, camera, cull_backfaces, triangle_mask)
+    s = _Setup(*map(_materialize, _setup(positions, faces, camera, cull_backfaces, triangle_mask)))
     ids = _visibility(s, camera, tile_size, max_tiles)
-    return _resolve(s, ids, camera, neighbors, silhouette_walk)
+    if silhouette_budget is None:
+        silhouette_budget = default_silhouette_budget(camera.width, camera.height)
+    return _resolve(s, ids, camera, neighbors, silhouette_walk, silhouette_budget)
 
 
 def interpolate(attributes, fragments: Fragments, faces):
@@ -510,31 +617,41 @@ def antialias(color, buffer):
     ids = buffer.triangle_id if isinstance(buffer, Fragments) else buffer.surface_id
     depth = jax.lax.stop_gradient(buffer.depth)
     cross = buffer.crossings.astype(color.dtype)
-    out = color
-    for axis, fwd, bwd in ((1, 0, 1), (0, 2, 3)):  # horizontal pairs use +x/-x, vertical +y/-y
-        n = color.shape[axis]
-        a_sl = [slice(None)] * 2
-        b_sl = [slice(None)] * 2
-        a_sl[axis], b_sl[axis] = slice(0, n - 1), slice(1, n)
-        a_sl, b_sl = tuple(a_sl), tuple(b_sl)
-        ia, ib = ids[a_sl], ids[b_sl]
-        da, db = depth[a_sl], depth[b_sl]
-        ca, cb = color[a_sl], color[b_sl]
+
+    def weights(ia, ib, da, db, ta, tb):
+        # pair (a, b): the front pixel moves toward the back colour by (1/2 - t) when the edge
+        # is nearer than the midline, else the back pixel toward the front colour by (t - 1/2)
         a_front = da < db
-        t = jnp.where(a_front, cross[a_sl][..., fwd], cross[b_sl][..., bwd])
+        t = jnp.where(a_front, ta, tb)
         ok = (ia != ib) & (jax.lax.stop_gradient(t) >= 0)
-        cf = jnp.where(a_front[..., None], ca, cb)
-        cbk = jnp.where(a_front[..., None], cb, ca)
-        wb = jnp.where(ok & (t >= 0.5), t - 0.5, 0.0)[..., None]
-        wf = jnp.where(ok & (t < 0.5), 0.5 - t, 0.0)[..., None]
-        d_front = wf * (cbk - cf)
-        d_back = wb * (cf - cbk)
-        d_a = jnp.where(a_front[..., None], d_front, d_back)
-        d_b = jnp.where(a_front[..., None], d_back, d_front)
-        pad_a = [(0, 0)] * 3
-        pad_b = [(0, 0)] * 3
-        pad_a[axis], pad_b[axis] = (0, 1), (1, 0)
-        out = out + jnp.pad(d_a, pad_a) + jnp.pad(d_b, pad_b)
+        wf = jnp.where(ok & (t < 0.5), 0.5 - t, 0.0)
+        wb = jnp.where(ok & (t >= 0.5), t - 0.5, 0.0)
+        return jnp.where(a_front, wf, wb), jnp.where(a_front, wb, wf)
+
+    h_a, h_b = weights(
+        ids[:, :-1], ids[:, 1:], depth[:, :-1], depth[:, 1:], cross[:, :-1, 0], cross[:, 1:, 1]
+    )
+    v_a, v_b = weights(ids[:-1], ids[1:], depth[:-1], depth[1:], cross[:-1, :, 2], cross[1:, :, 3])
+    # weight of each pixel's move toward its right / left / lower / upper neighbour's colour
+    w = _materialize(
+        jnp.stack(
+            [
+                jnp.pad(h_a, ((0, 0), (0, 1))),
+                jnp.pad(h_b, ((0, 0), (1, 0))),
+                jnp.pad(v_a, ((0, 1), (0, 0))),
+                jnp.pad(v_b, ((1, 0), (0, 0))),
+            ]
+        )
+    )
+    nb = [
+        jnp.pad(color[:, 1:], ((0, 0), (0, 1), (0, 0))),
+        jnp.pad(color[:, :-1], ((0, 0), (1, 0), (0, 0))),
+        jnp.pad(color[1:], ((0, 1), (0, 0), (0, 0))),
+        jnp.pad(color[:-1], ((1, 0), (0, 0), (0, 0))),
+    ]
+    out = color
+    for wk, ck in zip(w, nb):
+        out = out + wk[..., None] * (ck - color)
     return out
 
 
@@ -549,6 +666,7 @@ def rasterize_gbuffer(
     triangle_mask=None,
     tile_size: int = 2,
     max_tiles: int | None = None,
+    silhouette_budget: int | None = None,
 ) -> GBuffer:
     """Rasterize a mesh and interpolate named per-vertex attributes into a GBuffer.
 
@@ -567,6 +685,7 @@ def rasterize_gbuffer(
         triangle_mask=triangle_mask,
         tile_size=tile_size,
         max_tiles=max_tiles,
+        silhouette_budget=silhouette_budget,
     )
     attrs = {k: interpolate(v, frags, faces) for k, v in attributes.items()}
     return GBuffer(
@@ -629,6 +748,7 @@ def render_mesh(
     cull_backfaces: bool = False,
     tile_size: int = 2,
     max_tiles: int | None = None,
+    silhouette_budget: int | None = None,
 ):
     """Unlit render: interpolated per-vertex colour, alpha = coverage, silhouette-antialiased.
 
@@ -653,6 +773,7 @@ def render_mesh(
         cull_backfaces=cull_backfaces,
         tile_size=tile_size,
         max_tiles=max_tiles,
+        silhouette_budget=silhouette_budget,
     )
     col = interpolate(colors, frags, faces)
     mask = (frags.triangle_id >= 0)[..., None]
