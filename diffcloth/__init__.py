@@ -1,10 +1,42 @@
 """diffcloth: differentiable cloth simulation and rendering in JAX.
 
     control-net physics -> patch tessellation -> vertex collision -> rasterize + shade -> image loss
+
+    import diffcloth as dc
+    scene = dc.load_scene("configs/drape_fit.toml")
+    video = dc.simulate_and_render(scene, {"bend": 2e-3})        # (cameras, T, H, W, 3)
+    result = dc.fit.fit(scene, video, free=["bend"], steps=50)   # FitResult
 """
 
+from diffcloth import fit, physics, render, surface
+from diffcloth.physics import ClothState, Material, Net
+from diffcloth.physics.rigid import RigidBody
+from diffcloth.pipeline import PARAMETERS, apply_params, simulate, simulate_and_render
+from diffcloth.render import Camera, Light
+from diffcloth.scene import Scene, build_scene, load_scene
 from diffcloth.shapes import Plane, Sphere
 
 __version__ = "0.1.0"
 
-__all__ = ["Plane", "Sphere", "__version__"]
+__all__ = [
+    "PARAMETERS",
+    "Camera",
+    "ClothState",
+    "Light",
+    "Material",
+    "Net",
+    "Plane",
+    "RigidBody",
+    "Scene",
+    "Sphere",
+    "__version__",
+    "apply_params",
+    "build_scene",
+    "fit",
+    "load_scene",
+    "physics",
+    "render",
+    "simulate",
+    "simulate_and_render",
+    "surface",
+]

@@ -189,7 +189,11 @@ def _parse_appearance(t: Mapping[str, Any], dtype):
 def build_scene(config: cfg.Config, dtype=None, *, overrides: Mapping[str, Any] | None = None) -> Scene:
     """A Scene from a validated Config (physics from `config.build_physics`, the rest from the
     render sections). `overrides` replaces top-level render settings (e.g. {"level": 3})."""
+    from diffcloth import physics
+
     phys = cfg.build_physics(config, dtype=dtype)
+    if phys.sim.integrator == "symplectic":
+        physics.check_stability(phys.net, phys.sim, phys.material)  # warns, naming the remedy
     sections = config.sections
     rc = _parse_render(sections.get("render", {}))
     if overrides:
