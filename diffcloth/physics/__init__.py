@@ -47,8 +47,35 @@ from diffcloth.physics.rollout import (
     trajectory_ok,
 )
 from diffcloth.physics.state import ClothState, SimSettings, make_sim, rest_state, validate_state
+from diffcloth.physics import coupled, rigid  # noqa: E402  (rigid bodies and cloth coupling)
+from diffcloth.physics.rigid import (
+    RigidBody,
+    RigidSettings,
+    Thrusters,
+    bodies_from_config,
+    make_body,
+    make_thrusters,
+    rigid_rollout,
+    rigid_step,
+)
+from diffcloth.physics.rigid import make_settings as make_rigid_settings
+from diffcloth.physics.coupled import body_colliders, coupled_rollout, coupled_step
 
 __all__ = [
+    "RigidBody",
+    "RigidSettings",
+    "Thrusters",
+    "bodies_from_config",
+    "body_colliders",
+    "coupled",
+    "coupled_rollout",
+    "coupled_step",
+    "make_body",
+    "make_rigid_settings",
+    "make_thrusters",
+    "rigid",
+    "rigid_rollout",
+    "rigid_step",
     "Colliders",
     "ClothState",
     "Contacts",
