@@ -200,6 +200,15 @@ def test_silhouette_gradient_translating_square(camera_fn):
 
 def test_occlusion_edge_gradient():
     cam = pixel_camera()
+    pos, faces, colors = _occlusion_scene()
+    moving = jnp.array([1.0, 1, 1, 1, 0, 0, 0, 0])
+    weights = jnp.ones((SIZE, SIZE, 4)).at[..., 3].set(0.0)
+    g, fd = _check_silhouette_gradient(pos, faces, colors, cam, weights, moving)
+    # colour difference (1.2 - 1.5) x edge length 11.7 px (rows whose centre the edge spans: 11)
+    assert abs(g / (1.2 - 1.5) - 11.7) <= 1.0
+
+
+def _occlusion_scene():
     back = quad(-20.0, 20.0, -20.0, 20.0, z=0.0)
     front = quad(-30.0, 3.6, -5.3, 6.4, z=1.0)
     pos = jnp.concatenate([front, back])
@@ -207,11 +216,46 @@ def test_occlusion_edge_gradient():
     colors = jnp.concatenate(
         [jnp.tile(jnp.array([1.0, 0.2, 0.0]), (4, 1)), jnp.tile(jnp.array([0.0, 0.5, 1.0]), (4, 1))]
     )
-    moving = jnp.array([1.0, 1, 1, 1, 0, 0, 0, 0])
-    weights = jnp.ones((SIZE, SIZE, 4)).at[..., 3].set(0.0)
-    g, fd = _check_silhouette_gradient(pos, faces, colors, cam, weights, moving)
-    # colour difference (1.2 - 1.5) x edge length 11.7 px (rows whose centre the edge spans: 11)
-    assert abs(g / (1.2 - 1.5) - 11.7) <= 1.0
+    return pos, faces, colors
+
+
+def _value_budget(positions, faces, colors, camera, weights, budget):
+    img = R.render_mesh(positions, faces, camera, colors, silhouette_budget=budget)
+    return jnp.sum(weights * img)
+
+
+_value_and_grad_budget = jax.jit(
+    jax.value_and_grad(_value_budget, argnums=(0, 2)), static_argnums=(5,)
+)
+
+
+def test_compact_silhouette_search_matches_full_image_search():
+    """The compacted pair list (default from 128 x 128 up) gives the full search's image and
+    gradients exactly."""
+    cam = pixel_camera()
+    pos, faces, colors = _occlusion_scene()
+    p, f, c = pad(pos, faces, colors)
+    need = int(jax.jit(R.silhouette_pairs)(p, f, cam))
+    assert 0 < need <= 160  # so a budget of 160 (< 2 H W = 2048) takes the compact path
+    weights = jnp.asarray(np.random.default_rng(3).uniform(size=(SIZE, SIZE, 4)))
+    v, (gp, gc) = _value_and_grad_budget(p, f, c, cam, weights, 160)
+    gp_full, gc_full = _grad(p, f, c, cam, weights)
+    assert np.abs(gp_full).max() > 0
+    np.testing.assert_allclose(float(v), float(jnp.sum(weights * _render(p, f, c, cam))), 1e-12)
+    np.testing.assert_allclose(gp, gp_full, atol=1e-12)
+    np.testing.assert_allclose(gc, gc_full, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_silhouette_budget_overflow_falls_back_to_full_search():
+    cam = pixel_camera()
+    p, f, c = pad(*_occlusion_scene())
+    weights = jnp.asarray(np.random.default_rng(4).uniform(size=(SIZE, SIZE, 4)))
+    v, (gp, _) = _value_and_grad_budget(p, f, c, cam, weights, 2)  # needs more than 2 pairs
+    np.testing.assert_allclose(float(v), float(jnp.sum(weights * _render(p, f, c, cam))), 1e-12)
+    np.testing.assert_allclose(gp, _grad(p, f, c, cam, weights)[0], atol=1e-12)
+    with pytest.raises(ValueError, match="silhouette_budget"):
+        R.rasterize(p, f, cam, silhouette_budget=-1)
 
 
 # ROBUSTNESS row 21: empty scene -> background, finite loss, zero (not NaN) gradients
@@ -310,10 +354,8 @@ def test_full_screen_triangle():
     assert need <= R.default_max_tiles(2, SIZE, SIZE)
 
 
-def test_gbuffer_composite_and_antialias():
-    cam = pixel_camera()
-    a = quad(-6.0, 2.0, -6.0, 2.0, z=1.0)
-    b = quad(-2.0, 6.0, -2.0, 6.0, z=0.0)
+@jax.jit
+def _two_buffers(a, b, cam):
     ga = R.rasterize_gbuffer(
         a, QUAD_FACES, cam, {"color": jnp.tile(jnp.array([1.0, 0, 0]), (4, 1))}
     )
@@ -324,12 +366,19 @@ def test_gbuffer_composite_and_antialias():
         {"color": jnp.tile(jnp.array([0, 1.0, 0]), (4, 1)), "uv": jnp.ones((4, 2))},
     )
     g = R.composite(gb, ga)
+    out = R.antialias(jnp.concatenate([g.attributes["color"], g.mask[..., None] * 1.0], -1), g)
+    return g, out
+
+
+def test_gbuffer_composite_and_antialias():
+    a = quad(-6.0, 2.0, -6.0, 2.0, z=1.0)
+    b = quad(-2.0, 6.0, -2.0, 6.0, z=0.0)
+    g, out = _two_buffers(a, b, pixel_camera())
     assert set(g.attributes) == {"color", "uv"}
     np.testing.assert_allclose(g.attributes["color"][16, 16], [1, 0, 0])
     np.testing.assert_allclose(g.attributes["uv"][16, 16], [0, 0])  # a has no uv -> zeros
     np.testing.assert_allclose(g.attributes["uv"][12, 20], [1, 1])
     assert int(g.mask.sum()) == 64 + 64 - 16
-    out = R.antialias(jnp.concatenate([g.attributes["color"], g.mask[..., None] * 1.0], -1), g)
     np.testing.assert_allclose(float(out[..., 3].sum()), 112.0, atol=1e-9)
 
 

@@ -422,22 +422,18 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
 
 
 def default_silhouette_budget(width: int, height: int) -> int:
-    """Default number of pixel pairs searched for silhouettes in the compact path."""
-    return int(max(256, width * height // 16))
+    """Default size of the compacted silhouette-pair list: H W / 16 (the seed cloth needs about
+    H W / 32 at 256 x 256 and H W / 50 at 512 x 512); below 128 x 128 pixels the full-image search
+    (budget 2 H W) is as cheap and compiles once instead of twice."""
+    n = width * height
+    return int(n // 16) if n >= 128 * 128 else int(2 * n)
 
 
-def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: int | None):
-    """(H, W, 4) fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
-    silhouette lies, set only on the nearer pixel of each neighbouring pair showing different
-    triangles (-1 elsewhere).
-
-    Walks from the front pixel's triangle across internal edges (up to `walk` further triangles)
-    along the segment to the neighbour's centre and stops at the first silhouette edge. Only
-    pairs whose front triangle has a silhouette edge within reach are searched; they are
-    compacted into a static list of `budget` pairs (a full-image search runs instead when more
-    pairs need it). The search has no gradient; the crossing of the edge found is recomputed
-    differentiably.
-    """
+def _pairs(s: _Setup, tri, ok, depth, neighbors, walk: int):
+    """Neighbouring pixel pairs (partner to the right: [0], below: [1]), (2, H, W) each, to search
+    for a silhouette: they show different triangles and the front one has a silhouette edge
+    within `walk` internal edges. Returns the flat silhouette-edge flags and neighbour table and
+    the front triangle, search flag and "this pixel is the nearer one" per pair."""
     H, W = tri.shape
     silm, reach = _reach(s, neighbors, walk)
     sil = _materialize(silm.reshape(-1))
@@ -445,7 +441,6 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
     nbr = jnp.maximum(neighbors, 0).reshape(-1)
     ids = jnp.where(ok, tri, -1)
     big = jnp.asarray(BACKGROUND_DEPTH, depth.dtype)
-    # pair partner to the right (orientation 0) and below (orientation 1), padded as background
     ids_n = jnp.stack(
         [
             jnp.pad(ids[:, 1:], ((0, 0), (0, 1)), constant_values=-1),
@@ -465,6 +460,23 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
         [jnp.ones((H, W), bool).at[:, -1].set(False), jnp.ones((H, W), bool).at[-1].set(False)]
     )
     active = (ids[None] != ids_n) & inner & (start >= 0) & reach[jnp.maximum(start, 0)]
+    return sil, nbr, start, active, a_front
+
+
+def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: int | None):
+    """(H, W, 4) fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
+    silhouette lies, set only on the nearer pixel of each neighbouring pair showing different
+    triangles (-1 elsewhere).
+
+    Walks from the front pixel's triangle across internal edges (up to `walk` further triangles)
+    along the segment to the neighbour's centre and stops at the first silhouette edge. Only
+    pairs whose front triangle has a silhouette edge within reach are searched; they are
+    compacted into a static list of `budget` pairs (a full-image search runs instead when more
+    pairs need it). The search has no gradient; the crossing of the edge found is recomputed
+    differentiably.
+    """
+    H, W = tri.shape
+    sil, nbr, start, active, a_front = _pairs(s, tri, ok, depth, neighbors, walk)
     vertical = jnp.arange(2)[:, None, None] == 1
 
     def full(_):
@@ -561,8 +573,9 @@ def rasterize(
       silhouette_walk: how many triangles beyond the visible one the silhouette search may cross
         along each neighbour segment (static; sub-pixel triangles need 1-2).
       silhouette_budget: static size of the compacted list of pixel pairs searched for
-        silhouettes (default `default_silhouette_budget`: H W / 16); when a frame needs more, a
-        full-image search runs instead (same result, slower). >= 2 H W: always full-image.
+        silhouettes (default `default_silhouette_budget`: H W / 16 from 128 x 128 up); when a
+        frame needs more, a full-image search runs instead (same result, slower; under vmap
+        both run). >= 2 H W: always the full-image search (compiles once, not twice).
     Returns:
       Fragments.
     """
@@ -585,7 +598,34 @@ def rasterize(
     ids = _visibility(s, camera, tile_size, max_tiles)
     if silhouette_budget is None:
         silhouette_budget = default_silhouette_budget(camera.width, camera.height)
+    if int(silhouette_budget) < 0:
+        raise ValueError(f"silhouette_budget must be >= 0, got {silhouette_budget}")
     return _resolve(s, ids, camera, neighbors, silhouette_walk, silhouette_budget)
+
+
+def silhouette_pairs(
+    positions,
+    faces,
+    camera: Camera,
+    *,
+    neighbors=None,
+    cull_backfaces: bool = False,
+    tile_size: int = 2,
+    max_tiles: int | None = None,
+    silhouette_walk: int = 1,
+):
+    """Number of pixel pairs the silhouette search needs (compare with `silhouette_budget`:
+    above it, the slower full-image search runs)."""
+    faces = jnp.asarray(faces).astype(jnp.int32)
+    if neighbors is None:
+        neighbors = edge_neighbors(faces)
+    if max_tiles is None:
+        max_tiles = default_max_tiles(faces.shape[0], camera.width, camera.height, tile_size)
+    s = _setup(positions, faces, camera, cull_backfaces)
+    ids = _visibility(s, camera, tile_size, max_tiles)
+    fr = _resolve(s, ids, camera, neighbors, 0, None)
+    tri = jnp.maximum(fr.triangle_id, 0)
+    return jnp.sum(_pairs(s, tri, fr.triangle_id >= 0, fr.depth, neighbors, silhouette_walk)[3])
 
 
 def interpolate(attributes, fragments: Fragments, faces):
@@ -650,7 +690,7 @@ def antialias(color, buffer):
         jnp.pad(color[:-1], ((1, 0), (0, 0), (0, 0))),
     ]
     out = color
-    for wk, ck in zip(w, nb):
+    for wk, ck in zip(w, nb, strict=True):
         out = out + wk[..., None] * (ck - color)
     return out
 
