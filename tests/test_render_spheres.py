@@ -49,7 +49,9 @@ scene = jax.jit(_scene)
 area_grad = jax.jit(jax.grad(lambda c, r: jnp.sum(_sphere_only(c, r)[0]), argnums=(0, 1)))
 red_grad = jax.jit(
     jax.grad(
-        lambda c, r, z: jnp.sum(jnp.asarray([1.0, 0.0, -1.0, 0.0]) * _scene(c, r, z)[0]),
+        lambda c, r, z: jnp.sum(
+            jnp.asarray([1.0, 0.0, -1.0, 0.0])[None, None] * _scene(c, r, z)[0]
+        ),
         argnums=(0, 1),
     )
 )
