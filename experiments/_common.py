@@ -33,24 +33,22 @@ def _num(v) -> str:
 
 
 def table_row(name: str, summary: dict, link: str | None) -> dict:
-    """A README row with true, initial and fitted values and the relative error per parameter."""
+    """A README row with true, initial and fitted values and the relative error per parameter
+    (its columns include `diffcloth.report.RESULTS_COLUMNS`)."""
     p = summary["params"]
 
     def col(key, fmt=_num):
         return "; ".join(f"{k} {fmt(e[key])}" for k, e in p.items() if e.get(key) is not None)
 
-    return {
-        "experiment": name,
+    row = report.results_row(name, summary, link)
+    row.update({
         "true": col("true"),
         "initial": col("initial"),
         "fitted": col("fitted"),
         "relative error": col("relative_error", lambda e: f"{100 * e:.2g} %"),
-        "loss": f"{summary['loss']:.3g}",
-        "iterations": str(summary["iterations"]),
-        "fit wall (s)": f"{summary['wall_s']:.0f}",
         "total (s)": f"{summary.get('total_s', float('nan')):.0f}",
-        "report": f"[report]({link})" if link else "-",
-    }
+    })
+    return row
 
 
 def out_dir(name: str, smoke: bool) -> Path:
@@ -60,8 +58,11 @@ def out_dir(name: str, smoke: bool) -> Path:
 def add_row(name: str, summary: dict, smoke: bool) -> None:
     if not smoke:
         link = f"{name.split(' ')[0]}/report.md"
-        report.append_results_row(README, table_row(name, summary, link),
-                                  title="Experiment results", intro=INTRO)
+        try:
+            report.append_results_row(README, table_row(name, summary, link),
+                                      title="Experiment results", intro=INTRO)
+        except ValueError:  # a table with only the standard columns: add the standard row
+            report.append_results_row(README, report.results_row(name, summary, link))
 
 
 def run_experiment(name: str, config_path, *, smoke: bool = False, title: str | None = None,
