@@ -252,6 +252,7 @@ def test_point_at_sphere_centre_goes_out_along_y_with_finite_gradient():
     x = jnp.zeros((3, 1, 1))
     col = physics.as_colliders(make_sphere((0.0, 0.0, 0.0), 0.5))
 
+    @jax.jit
     def pushed(center_y):
         c = dataclasses.replace(
             col,

@@ -54,7 +54,9 @@ def _loss_and_grad(integrator, num_frames):
         traj = physics.rollout(NET, sim, m, S0, num_frames=num_frames, colliders=BALL)
         return jnp.sum((traj.x - TARGET[None]) ** 2) + 0.1 * jnp.sum(traj.v[-1] ** 2)
 
-    return jax.jit(loss), jax.jit(jax.grad(loss))
+    # one compiled function serves both the gradient and the finite differences
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    return (lambda m: value_and_grad(m)[0]), (lambda m: value_and_grad(m)[1])
 
 
 def _check(integrator, num_frames):
@@ -64,8 +66,9 @@ def _check(integrator, num_frames):
     for name in MATERIAL_FIELDS:
         value = float(getattr(MAT, name))
         eps = 1e-5 * value
-        up = dataclasses.replace(MAT, **{name: jnp.asarray(value + eps)})
-        dn = dataclasses.replace(MAT, **{name: jnp.asarray(value - eps)})
+        # strongly typed like MAT's fields (a weakly typed scalar would trigger a recompile)
+        up = dataclasses.replace(MAT, **{name: jnp.asarray(value + eps, MAT.stretch.dtype)})
+        dn = dataclasses.replace(MAT, **{name: jnp.asarray(value - eps, MAT.stretch.dtype)})
         fd = (float(loss(up)) - float(loss(dn))) / (2 * eps)
         ad = float(getattr(g, name))
         assert np.isfinite(ad) and ad != 0.0, name

@@ -265,7 +265,10 @@ def step_with_contacts(
             return (x1, kick(x1, v1), si, pi), None
 
         init = (x0, to_planar(state.v), zeros_si, zeros_pi)
-        (x, v, si, pi), _ = jax.lax.scan(substep, init, jnp.arange(num))
+        # substeps are checkpointed too: a gradient stores one state per substep, not the force
+        # loop's intermediates (which are recomputed in the backward pass)
+        body = jax.checkpoint(substep, prevent_cse=False)
+        (x, v, si, pi), _ = jax.lax.scan(body, init, jnp.arange(num))
         x, v, dsi, dpi = constrain(x, x + h * v, v, num * h)
         si, pi = si + dsi, pi + dpi
     elif sim.integrator == "implicit":

@@ -123,7 +123,7 @@ def rollout(
         return new, new
 
     xs = (colliders if moving else None, pin_path)
-    _, traj = jax.lax.scan(jax.checkpoint(body), state, xs, length=num_frames)
+    _, traj = jax.lax.scan(jax.checkpoint(body, prevent_cse=False), state, xs, length=num_frames)
     return traj
 
 
