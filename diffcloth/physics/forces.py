@@ -1,11 +1,12 @@
 """Pure force terms on the control net: (net, material, x, v) -> (rows, cols, 3) in N.
 
-Springs are evaluated as shifted slices of the (rows, cols, 3) arrays and accumulated back onto nodes
-with zero padding, which XLA fuses into a few loops (no gathers, no scatter-adds). A gather/scatter
-version over explicit spring lists (`internal_forces_gather`) is kept as a reference and benchmark.
+Springs are evaluated on zero-padded planar arrays as shifted slices (no gathers, no scatter-adds):
+one scalar per spring (force on its first node s * (x_second - x_first)), then one loop gathers the
+eight spring ends, the bending stencil and the cell drag onto each node. A gather/scatter version over
+explicit spring lists (`make_gather_forces`) is kept as a reference and benchmark.
 
-Degenerate springs (two nodes at one point) use a per-element double `where`: the direction falls back
-to +y, the value and the gradient stay finite.
+Degenerate springs (two nodes at one point): the grid kernels give them zero force (ROBUSTNESS row 1
+allows it), the reference `_pair_force` falls back to +y; values and gradients stay finite.
 """
 
 from __future__ import annotations
