@@ -4,6 +4,8 @@ Config sections read here (the scene sections are in docs/config.md and diffclot
 
     [fit]   free = ["stretch", "bend"]   parameters to fit (diffcloth.pipeline.PARAMETERS)
             steps = 60, learning_rate = 0.05, loss = "l2" | "l1" | "pyramid", patience = 30,
+            schedule = "cosine" (Adam's rate decays to 10% over the steps, damping the
+            oscillation around the optimum) | "constant",
             noise = 0.0 (std of Gaussian noise added to synthetic targets), seed = 0,
             multistart = 1, identifiability = true, noise_sigma = 0.01,
             targets = "folder"   (instead of [truth]: PNGs, one subfolder cam0, cam1, ... per camera
@@ -34,6 +36,7 @@ class FitSettings:
     learning_rate: float = 0.05
     loss: str = "l2"
     patience: int = 30
+    schedule: str = "cosine"
     noise: float = 0.0
     seed: int = 0
     multistart: int = 1
@@ -107,6 +110,7 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         learning_rate=cfg.get_number(t, "learning_rate", 0.05, where=w, lo=0, lo_inclusive=False),
         loss=cfg.get_choice(t, "loss", "l2", LOSSES, where=w),
         patience=cfg.get_number(t, "patience", 30, where=w, lo=1, integer=True),
+        schedule=cfg.get_choice(t, "schedule", "cosine", ("cosine", "constant"), where=w),
         noise=cfg.get_number(t, "noise", 0.0, where=w, lo=0, hi=1),
         seed=cfg.get_number(t, "seed", 0, where=w, integer=True),
         multistart=cfg.get_number(t, "multistart", 1, where=w, lo=1, hi=64, integer=True),
@@ -190,14 +194,20 @@ def run_fit_config(
     else:
         targets = np.asarray(dcfit.make_targets(sc, settings.truth, noise=settings.noise,
                                                 seed=settings.seed))
+    import optax
+
+    rate = settings.learning_rate
+    if settings.schedule == "cosine":
+        rate = optax.cosine_decay_schedule(rate, settings.steps, alpha=0.1)
+    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(rate))
     result = dcfit.fit(
         sc,
         targets,
         settings.free,
         settings.steps,
+        optimizer,
         init=settings.initial,
         loss=settings.loss,
-        learning_rate=settings.learning_rate,
         multistart=settings.multistart,
         seed=settings.seed,
         patience=settings.patience,

@@ -6,17 +6,34 @@ Surface --rasterize_gbuffer--> per-pixel attributes --shade--> premultiplied RGB
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from diffcloth._math import safe_normalize
 from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
 from diffcloth.render.lights import Appearance, Lights
-from diffcloth.render.raster import antialias, rasterize_gbuffer
+from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.rays import ray_sphere
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
 from diffcloth.render.textures import Textures
 from diffcloth.shapes import Sphere
+
+
+@functools.lru_cache(maxsize=32)
+def _grid_neighbors_np(grid_shape):
+    from diffcloth.surface.tessellate import _faces_np
+
+    with jax.ensure_compile_time_eval():  # concrete even when first called under a trace
+        return np.asarray(edge_neighbors(_faces_np(*grid_shape)))
+
+
+def _grid_neighbors(grid_shape):
+    """Edge neighbours of a tessellated grid's triangles, computed once in numpy (a traced
+    `edge_neighbors` would sort inside every compiled program). None for other meshes."""
+    return None if grid_shape is None else jnp.asarray(_grid_neighbors_np(tuple(grid_shape)))
 
 
 def _face_normals(positions, faces, normals):
@@ -117,7 +134,13 @@ def surface_gbuffer(
         if two_sided:
             attrs["color_back"] = light_vertices(pos, -nrm, eye4, lights, appearance)
     buf = rasterize_gbuffer(
-        pos, faces, camera, attrs, cull_backfaces=cull_backfaces, max_tiles=max_tiles
+        pos,
+        faces,
+        camera,
+        attrs,
+        neighbors=_grid_neighbors(getattr(surface, "grid_shape", None)),
+        cull_backfaces=cull_backfaces,
+        max_tiles=max_tiles,
     )
     a = buf.attributes
     mask = buf.mask.astype(pos.dtype)
