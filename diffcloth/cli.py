@@ -77,6 +77,14 @@ def _simulate(args) -> int:
         dt=float(np.asarray(sim.dt)),
     )
     print(f"wrote {out / 'trajectory.npz'}: x {x.shape} ({time.perf_counter() - t0:.1f} s)")
+    if args.obj:
+        from diffcloth import surface
+        from diffcloth.io import write_obj_sequence
+
+        flip = net.rows >= 2 and config.net.plane == "xz"  # normals up for a horizontal net
+        surfaces = jax.jit(jax.vmap(lambda xf: surface.tessellate(xf, args.level, flip=flip)))(x)
+        paths = write_obj_sequence(out / "obj", surfaces)
+        print(f"wrote {len(paths)} OBJ files (level {args.level}) to {out / 'obj'}")
     return 0
 
 
@@ -112,6 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="override [sim] num_frames")
     p.add_argument("--chunk", type=int, default=10, help="frames per progress line")
     p.add_argument("--x64", action="store_true", help="simulate in float64")
+    p.add_argument("--obj", action="store_true", help="also write DIR/obj/frame_*.obj surfaces")
+    p.add_argument("--level", type=int, default=4, help="tessellation level for --obj")
     p.add_argument(
         "--allow-unstable",
         action="store_true",

@@ -40,7 +40,8 @@ eye = [0, 1, 3]
 def test_simulate_writes_trajectory_and_prints_progress(tmp_path, capsys):
     cfg = tmp_path / "small.toml"
     cfg.write_text(SMALL)
-    assert main(["simulate", str(cfg), "--out", str(tmp_path / "out"), "--chunk", "3"]) == 0
+    out = tmp_path / "out"
+    assert main(["simulate", str(cfg), "--out", str(out), "--chunk", "3"]) == 0
     printed = capsys.readouterr().out
     assert "frame    3/6" in printed and "frame    6/6" in printed
     data = np.load(tmp_path / "out" / "trajectory.npz")
@@ -64,3 +65,16 @@ def test_python_dash_m_entry_point():
         [sys.executable, "-m", "diffcloth", "--help"], capture_output=True, text=True, cwd=ROOT
     )
     assert out.returncode == 0 and "simulate" in out.stdout
+
+
+def test_simulate_obj_files_hold_the_tessellated_frames(tmp_path):
+    from diffcloth.io import read_obj
+
+    cfg = tmp_path / "small.toml"
+    cfg.write_text(SMALL)
+    assert main(["simulate", str(cfg), "--out", str(tmp_path / "o"), "--obj", "--level", "2"]) == 0
+    files = sorted((tmp_path / "o" / "obj").glob("*.obj"))
+    assert len(files) == 6
+    mesh = read_obj(files[-1])
+    verts = mesh["positions"]
+    assert np.asarray(verts).shape == ((4 - 3) * 2 * (5 - 3) * 2, 3)
