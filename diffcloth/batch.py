@@ -39,7 +39,9 @@ def batch_size(batched: Any) -> int:
         shape = np.shape(leaf)
         name = jax.tree_util.keystr(path) or "<root>"
         if len(shape) == 0:
-            raise ValueError(f"batched leaf {name} is a scalar: every leaf needs a leading batch axis")
+            raise ValueError(
+                f"batched leaf {name} is a scalar: every leaf needs a leading batch axis"
+            )
         sizes[name] = shape[0]
     if len(set(sizes.values())) != 1:
         detail = ", ".join(f"{k}: {v}" for k, v in sizes.items())

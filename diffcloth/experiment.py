@@ -64,7 +64,9 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
 
     t = sections.get("fit")
     if t is None:
-        raise cfg.ConfigError("missing [fit] section: name the free parameters, e.g. free = [\"stretch\"]")
+        raise cfg.ConfigError(
+            'missing [fit] section: name the free parameters, e.g. free = ["stretch"]'
+        )
     w = "fit"
     keys = [f.name for f in dataclasses.fields(FitSettings) if f.name != "truth"]
     cfg.check_keys(t, keys, w)
@@ -96,7 +98,7 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         truth[name] = arr
     targets = t.get("targets")
     if targets is None and not truth:
-        raise cfg.ConfigError("give target images ([fit] targets = \"folder\") or a [truth] table")
+        raise cfg.ConfigError('give target images ([fit] targets = "folder") or a [truth] table')
     if targets is not None:
         if not isinstance(targets, str):
             raise cfg.ConfigError("[fit] targets must be a folder path (string)")
@@ -192,8 +194,9 @@ def run_fit_config(
     if settings.targets is not None:
         targets = load_targets(settings.targets, len(sc.cameras))
     else:
-        targets = np.asarray(dcfit.make_targets(sc, settings.truth, noise=settings.noise,
-                                                seed=settings.seed))
+        targets = np.asarray(
+            dcfit.make_targets(sc, settings.truth, noise=settings.noise, seed=settings.seed)
+        )
     import optax
 
     rate = settings.learning_rate
@@ -220,8 +223,9 @@ def run_fit_config(
     fitted_video = np.asarray(render_fn(sc, {k: np.asarray(v) for k, v in result.params.items()}))
     ident = None
     if settings.identifiability:
-        ident = dcfit.scene_identifiability(sc, targets, result.params,
-                                            noise_sigma=settings.noise_sigma)
+        ident = dcfit.scene_identifiability(
+            sc, targets, result.params, noise_sigma=settings.noise_sigma
+        )
     truth = {k: v for k, v in settings.truth.items() if k in settings.free} or None
     sections = dict(extra_sections or {})
     if multi is not None:

@@ -126,8 +126,9 @@ def _parse_cameras(sections: Mapping[str, Any], rc: RenderConfig, dtype) -> tupl
         kw = dict(
             width=rc.width,
             height=rc.height,
-            fov_y=cfg.get_number(t, "fov_y", 45.0, where=w, lo=0, hi=180, lo_inclusive=False,
-                                 hi_inclusive=False),
+            fov_y=cfg.get_number(
+                t, "fov_y", 45.0, where=w, lo=0, hi=180, lo_inclusive=False, hi_inclusive=False
+            ),
             near=cfg.get_number(t, "near", 0.1, where=w, lo=0, lo_inclusive=False),
             far=cfg.get_number(t, "far", 100.0, where=w, lo=0, lo_inclusive=False),
             projection=t.get("projection", "perspective"),
@@ -186,7 +187,9 @@ def _parse_appearance(t: Mapping[str, Any], dtype):
         raise cfg.ConfigError(f"[appearance] {err}") from None
 
 
-def build_scene(config: cfg.Config, dtype=None, *, overrides: Mapping[str, Any] | None = None) -> Scene:
+def build_scene(
+    config: cfg.Config, dtype=None, *, overrides: Mapping[str, Any] | None = None
+) -> Scene:
     """A Scene from a validated Config (physics from `config.build_physics`, the rest from the
     render sections). `overrides` replaces top-level render settings (e.g. {"level": 3})."""
     from diffcloth import physics

@@ -48,8 +48,12 @@ SHARDED_SCRIPT = textwrap.dedent(
 
 
 def test_sharded_batch_equals_unsharded_on_four_cpu_devices():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
-    res = subprocess.run([sys.executable, "-c", SHARDED_SCRIPT], env=env, capture_output=True, text=True)
+    env = dict(
+        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", SHARDED_SCRIPT], env=env, capture_output=True, text=True
+    )
     assert "SHARDED_OK" in res.stdout, res.stderr[-2000:]
 
 

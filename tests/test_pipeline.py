@@ -14,8 +14,16 @@ from diffcloth.physics.material import MATERIAL_FIELDS
 
 SMALL = {
     "net": {"rows": 8, "cols": 8, "width": 0.8, "height": 0.8, "center": [0.0, 0.75, 0.0]},
-    "material": {"stretch": 30.0, "shear": 10.0, "bend": 1e-3, "damping": 1e-4, "density": 0.3,
-                 "drag_normal": 0.8, "drag_tangent": 0.2, "friction": 0.4},
+    "material": {
+        "stretch": 30.0,
+        "shear": 10.0,
+        "bend": 1e-3,
+        "damping": 1e-4,
+        "density": 0.3,
+        "drag_normal": 0.8,
+        "drag_tangent": 0.2,
+        "friction": 0.4,
+    },
     "sim": {"dt": 1.0 / 30.0, "num_frames": 10, "num_substeps": 12, "wind": [1.0, 0.0, 0.5]},
     "spheres": [{"center": [0.05, 0.4, 0.0], "radius": 0.25}],
     "render": {"width": 64, "height": 64, "level": 2, "frame_stride": 2},
@@ -79,8 +87,15 @@ def test_small_fit_recovers_bending_stiffness(small_scene):
     truth = {"bend": 2e-3}
     targets = dc.fit.make_targets(small_scene, truth)
     result = dc.fit.fit(
-        small_scene, targets, ["bend"], steps=40, init={"bend": 5e-3}, learning_rate=0.15,
-        patience=None, progress=False, loss_tol=1e-12,
+        small_scene,
+        targets,
+        ["bend"],
+        steps=40,
+        init={"bend": 5e-3},
+        learning_rate=0.15,
+        patience=None,
+        progress=False,
+        loss_tol=1e-12,
     )
     assert result.ok
     rel = abs(float(result.params["bend"]) - 2e-3) / 2e-3

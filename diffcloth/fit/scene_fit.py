@@ -19,7 +19,14 @@ from diffcloth.fit.identifiability import identifiability
 from diffcloth.fit.loop import fit_multistart, fit_params
 from diffcloth.fit.losses import image_loss, pyramid_loss, validate_targets
 
-__all__ = ["LOSSES", "default_constraint", "fit", "make_targets", "scene_identifiability", "video_loss"]
+__all__ = [
+    "LOSSES",
+    "default_constraint",
+    "fit",
+    "make_targets",
+    "scene_identifiability",
+    "video_loss",
+]
 
 LOSSES = ("l2", "l1", "pyramid")
 
@@ -131,8 +138,13 @@ def fit(
     init = {n: np.asarray(init[n] if init and n in init else current[n]) for n in free}
     cons = {n: (constraints or {}).get(n, default_constraint(n)) for n in free}
     loss_fn = _loss_fn(loss)
-    common = dict(steps=steps, optimizer=optimizer, learning_rate=learning_rate,
-                  loss_args=(targets, scene), **fit_kwargs)
+    common = dict(
+        steps=steps,
+        optimizer=optimizer,
+        learning_rate=learning_rate,
+        loss_args=(targets, scene),
+        **fit_kwargs,
+    )
     if multistart <= 1:
         return fit_params(loss_fn, init, cons, **common)
     rng = np.random.default_rng(seed)
@@ -148,8 +160,9 @@ def fit(
     return fit_multistart(loss_fn, inits, cons, **common)
 
 
-def scene_identifiability(scene, targets, params: Mapping[str, Any], *, noise_sigma: float = 0.01,
-                          **kwargs):
+def scene_identifiability(
+    scene, targets, params: Mapping[str, Any], *, noise_sigma: float = 0.01, **kwargs
+):
     """Gauss-Newton identifiability of `params` (name -> fitted value) from the image residuals
     (rendered - target), with pixel noise `noise_sigma`. See `diffcloth.fit.identifiability`."""
     from diffcloth import pipeline
