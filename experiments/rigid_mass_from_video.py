@@ -12,6 +12,7 @@ collision with the ball and rendering.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -59,10 +60,7 @@ def make_video(setup, params):
         velocity=(0.0, -2.5, -2.6),
         friction=0.1,
     )
-    ball = jax.tree_util.tree_map(lambda a: a, ball)
-    ball = ball.__class__(
-        **{**ball.__dict__, "mass": params["mass"], "restitution": params["restitution"]}
-    )
+    ball = dataclasses.replace(ball, mass=params["mass"], restitution=params["restitution"])
     cloth, (traj,) = physics.coupled_rollout(
         setup["net"],
         setup["sim"],
