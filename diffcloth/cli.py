@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -88,9 +89,32 @@ def _simulate(args) -> int:
     return 0
 
 
+def _force_host_devices(n: int) -> None:
+    """Let JAX's CPU backend expose `n` devices (no effect on GPUs), unless XLA_FLAGS already sets it.
+
+    Must run before JAX initialises a backend; the CLI calls it before any computation.
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
+
+
 def _fit(args) -> int:
+    if args.devices is not None:
+        if args.devices < 1:
+            print(f"error: --devices must be >= 1, got {args.devices}", file=sys.stderr)
+            return 2
+        _force_host_devices(args.devices)
     import jax
 
+    if args.devices is not None and args.devices > jax.device_count():
+        print(
+            f"error: --devices {args.devices} but JAX sees {jax.device_count()} device(s) "
+            f"({jax.devices()[0].platform}); on CPU set XLA_FLAGS="
+            f"--xla_force_host_platform_device_count={args.devices} before JAX starts",
+            file=sys.stderr,
+        )
+        return 2
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     from diffcloth.config import ConfigError
@@ -98,7 +122,9 @@ def _fit(args) -> int:
 
     print(f"diffcloth fit {args.config} -> {args.out}", flush=True)
     try:
-        summary = run_fit_config(args.config, args.out, smoke=args.smoke, steps=args.steps)
+        summary = run_fit_config(
+            args.config, args.out, smoke=args.smoke, steps=args.steps, devices=args.devices
+        )
     except (ConfigError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -106,8 +132,10 @@ def _fit(args) -> int:
         err = row.get("relative_error")
         tail = f"  relative error {err:.2%}" if err is not None else ""
         print(f"  {name}: initial {row['initial']}  fitted {row['fitted']}{tail}")
-    print(f"loss {summary['loss']:.4g} after {summary['iterations']} steps, "
-          f"{summary['total_s']:.1f} s in all; wrote {args.out}/report.md")
+    print(
+        f"loss {summary['loss']:.4g} after {summary['iterations']} steps, "
+        f"{summary['total_s']:.1f} s in all; wrote {args.out}/report.md"
+    )
     return 0
 
 
@@ -134,6 +162,13 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--steps", type=int, default=None, help="override [fit] steps")
     f.add_argument("--smoke", action="store_true", help="tiny sizes, 2 steps (CI)")
     f.add_argument("--x64", action="store_true", help="fit in float64")
+    f.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="spread the [fit] multistart guesses over N devices (GPUs, or N CPU devices); "
+        "overrides [fit] devices",
+    )
     f.set_defaults(func=_fit)
     return parser
 

@@ -7,7 +7,9 @@ Config sections read here (the scene sections are in docs/config.md and diffclot
             schedule = "cosine" (Adam's rate decays to 10% over the steps, damping the
             oscillation around the optimum) | "constant",
             noise = 0.0 (std of Gaussian noise added to synthetic targets), seed = 0,
-            multistart = 1, identifiability = true, noise_sigma = 0.01,
+            multistart = 1, devices = 1 (spread the multistart guesses over this many devices;
+            multistart must be a multiple; `diffcloth fit --devices N` overrides),
+            identifiability = true, noise_sigma = 0.01,
             targets = "folder"   (instead of [truth]: PNGs, one subfolder cam0, cam1, ... per camera
                                   or the PNGs directly for a single camera)
     [fit.initial]  name = value   starting values (default: the scene's own)
@@ -40,6 +42,7 @@ class FitSettings:
     noise: float = 0.0
     seed: int = 0
     multistart: int = 1
+    devices: int = 1
     identifiability: bool = True
     noise_sigma: float = 0.01
     targets: str | None = None
@@ -103,6 +106,9 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         if not isinstance(targets, str):
             raise cfg.ConfigError("[fit] targets must be a folder path (string)")
         targets = str((base_dir or Path(".")) / targets)
+    multistart = cfg.get_number(t, "multistart", 1, where=w, lo=1, hi=64, integer=True)
+    devices = cfg.get_number(t, "devices", 1, where=w, lo=1, hi=4096, integer=True)
+    check_devices(devices, multistart, "[fit] devices")
     ident = t.get("identifiability", True)
     if not isinstance(ident, bool):
         raise cfg.ConfigError("[fit] identifiability must be true or false")
@@ -115,13 +121,23 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         schedule=cfg.get_choice(t, "schedule", "cosine", ("cosine", "constant"), where=w),
         noise=cfg.get_number(t, "noise", 0.0, where=w, lo=0, hi=1),
         seed=cfg.get_number(t, "seed", 0, where=w, integer=True),
-        multistart=cfg.get_number(t, "multistart", 1, where=w, lo=1, hi=64, integer=True),
+        multistart=multistart,
+        devices=devices,
         identifiability=ident,
         noise_sigma=cfg.get_number(t, "noise_sigma", 0.01, where=w, lo=0, lo_inclusive=False),
         targets=targets,
         initial=initial,
         truth=truth,
     )
+
+
+def check_devices(devices: int, multistart: int, where: str = "devices") -> None:
+    """ConfigError unless the multistart guesses split evenly over the devices."""
+    if devices > 1 and multistart % devices:
+        raise cfg.ConfigError(
+            f"{where} = {devices} spreads the multistart guesses over devices, so [fit] multistart "
+            f"must be a multiple of it (got multistart = {multistart})"
+        )
 
 
 def smoke_config(config: cfg.Config) -> cfg.Config:
@@ -162,6 +178,7 @@ def run_fit_config(
     *,
     smoke: bool = False,
     steps: int | None = None,
+    devices: int | None = None,
     progress: bool = True,
     title: str | None = None,
     extra_sections: Mapping[str, str] | None = None,
@@ -183,8 +200,12 @@ def run_fit_config(
     if smoke:
         config = smoke_config(config)
         settings = dataclasses.replace(settings, steps=2, multistart=min(settings.multistart, 2))
+        settings = dataclasses.replace(settings, devices=min(settings.devices, settings.multistart))
     if steps is not None:
         settings = dataclasses.replace(settings, steps=steps)
+    if devices is not None:
+        check_devices(devices, settings.multistart, "--devices")
+        settings = dataclasses.replace(settings, devices=devices)
     sc = scene.build_scene(config)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -212,6 +233,7 @@ def run_fit_config(
         init=settings.initial,
         loss=settings.loss,
         multistart=settings.multistart,
+        devices=settings.devices,
         seed=settings.seed,
         patience=settings.patience,
         progress=progress,
@@ -230,7 +252,9 @@ def run_fit_config(
     sections = dict(extra_sections or {})
     if multi is not None:
         sections["Multi-start"] = (
-            f"{settings.multistart} starts fitted at once with vmap; final losses "
+            f"{settings.multistart} starts fitted at once with vmap"
+            + (f", spread over {settings.devices} devices" if settings.devices > 1 else "")
+            + "; final losses "
             + ", ".join(f"{l:.3g}" for l in multi.losses)
             + f"; best start #{multi.best_index}."
         )

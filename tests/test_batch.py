@@ -42,6 +42,23 @@ SHARDED_SCRIPT = textwrap.dedent(
     out = jax.jit(jax.vmap(f))(sharded)
     assert len(out.sharding.device_set) == 4, out.sharding
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=1e-6)
+
+    # fit_multistart(devices=4): the starts are sharded, the fit equals the one-device fit
+    from diffcloth.fit import fit_multistart
+    loss = lambda q: (jnp.log(q["k"]) - 0.7) ** 2 + 0.1 * jnp.sin(3.0 * q["k"]) ** 2
+    inits = [{"k": v} for v in (0.5, 1.0, 2.0, 4.0)]
+    kw = dict(steps=25, learning_rate=0.1, progress=False, patience=None)
+    one = fit_multistart(loss, inits, {"k": "positive"}, **kw)
+    four = fit_multistart(loss, inits, {"k": "positive"}, devices=4, **kw)
+    np.testing.assert_allclose(four.losses, one.losses, rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(four.params["k"], one.params["k"], rtol=1e-5)
+    assert four.best_index == one.best_index
+    try:
+        fit_multistart(loss, inits[:3], {"k": "positive"}, devices=4, **kw)
+    except ValueError as err:
+        assert "multiple of devices (4)" in str(err), err
+    else:
+        raise AssertionError("3 starts on 4 devices must raise")
     print("SHARDED_OK")
     """
 )

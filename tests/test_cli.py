@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from diffcloth.cli import main
 
@@ -78,3 +79,31 @@ def test_simulate_obj_files_hold_the_tessellated_frames(tmp_path):
     mesh = read_obj(files[-1])
     verts = mesh["positions"]
     assert np.asarray(verts).shape == ((4 - 3) * 2 * (5 - 3) * 2, 3)
+
+
+def test_fit_devices_errors(tmp_path, capsys, monkeypatch):
+    import jax
+
+    jax.device_count()  # start the backend first: the CLI's XLA_FLAGS must not reach this process
+    monkeypatch.setenv("XLA_FLAGS", "")  # the CLI may add the host device count; restore after
+    cfg = str(Path(__file__).parents[1] / "configs" / "drape_fit.toml")
+    assert main(["fit", cfg, "--out", str(tmp_path), "--devices", "0"]) == 2
+    assert "--devices must be >= 1" in capsys.readouterr().err
+    # JAX started long ago in this process with one CPU device: a clear error, not a crash
+    assert main(["fit", cfg, "--out", str(tmp_path), "--devices", "64"]) == 2
+    err = capsys.readouterr().err
+    assert "JAX sees 1 device" in err and "xla_force_host_platform_device_count=64" in err
+
+
+def test_fit_config_devices_must_divide_multistart():
+    from diffcloth.config import ConfigError
+    from diffcloth.experiment import parse_fit
+
+    base = {"free": ["bend"], "multistart": 4}
+    assert parse_fit({"fit": {**base, "devices": 2}, "truth": {"bend": 1e-3}}).devices == 2
+    with pytest.raises(
+        ConfigError, match=r"\[fit\] devices = 3 .* multiple of it \(got multistart = 4\)"
+    ):
+        parse_fit({"fit": {**base, "devices": 3}, "truth": {"bend": 1e-3}})
+    with pytest.raises(ConfigError, match="devices"):
+        parse_fit({"fit": {**base, "devices": 0}, "truth": {"bend": 1e-3}})

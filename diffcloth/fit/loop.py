@@ -413,6 +413,7 @@ def _run(
     checkpoint_every,
     desc,
     loss_args,
+    devices=None,
 ):
     _check_stopping(steps, tol, patience, loss_tol)
     names = list(init_phys)
@@ -422,6 +423,8 @@ def _run(
     raw = {k: _as_float(v) for k, v in to_raw(init_phys, cons).items()}
     if batched:
         opt_state = jax.vmap(opt.init)(raw)
+        if devices is not None:
+            raw, opt_state, loss_args = _spread(devices, n, raw, opt_state, loss_args)
 
         def step(r, s, a):
             return _step_batched(loss_fn, cons_items, opt, r, s, jnp.asarray(a), loss_args)
@@ -529,6 +532,24 @@ def _run(
         if r.status == "nonfinite":
             log.warning(r.message)
     return results, wall
+
+
+def _spread(devices, n, raw, opt_state, loss_args):
+    """Shard the starts (leading axis) over a device mesh; replicate the loss arguments."""
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from diffcloth.batch import make_mesh, shard_batch
+
+    mesh = devices if isinstance(devices, Mesh) else make_mesh(int(devices))
+    if n % mesh.devices.size:
+        raise ValueError(
+            f"the number of starts ({n}) must be a multiple of devices ({mesh.devices.size}): each "
+            "device fits the same number of starts"
+        )
+    raw, opt_state = shard_batch((raw, opt_state), mesh)
+    loss_args = jax.device_put(loss_args, NamedSharding(mesh, P()))
+    return raw, opt_state, loss_args
 
 
 def _postfix(bar, tr, phys, batched):
@@ -662,6 +683,7 @@ def fit_multistart(
     checkpoint_path: str | Path | None = None,
     checkpoint_every: int | None = None,
     loss_args: tuple = (),
+    devices: int | Any | None = None,
 ) -> MultiStartResult:
     """Fit several initial guesses at once (`jax.vmap` over the raw parameters); keep the best.
 
@@ -671,6 +693,11 @@ def fit_multistart(
       receives per-start arrays. Each start has its own finite flag and stopping state: a start
       whose loss or gradient becomes non-finite is frozen at its last finite parameters (status
       "nonfinite") and the others carry on unchanged. The checkpoint holds the best start.
+      devices: spread the starts over this many devices (or over a given 1-D
+        `jax.sharding.Mesh` with axis "batch"): the raw parameters and optimizer states are
+        sharded along the start axis (`diffcloth.batch.shard_batch`), `loss_args` replicated, and
+        the one jitted step runs each device's starts there. The number of starts must be a
+        multiple of the number of devices. None: JAX's default placement (one device).
     Returns:
       MultiStartResult: `.results` (one FitResult per start), `.best_index`, `.best`, `.params`.
     """
@@ -694,6 +721,7 @@ def fit_multistart(
         checkpoint_every=checkpoint_every,
         loss_args=tuple(loss_args),
         desc=f"fit x{n}",
+        devices=devices,
     )
     losses = np.array([r.loss if np.isfinite(r.loss) else np.inf for r in results])
     return MultiStartResult(results=results, best_index=int(np.argmin(losses)), wall_s=wall)

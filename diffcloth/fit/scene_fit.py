@@ -99,6 +99,7 @@ def fit(
     multistart: int = 1,
     spread: float = 0.5,
     seed: int = 0,
+    devices: int | None = None,
     **fit_kwargs,
 ):
     """Fit the named scene parameters to target videos.
@@ -114,6 +115,8 @@ def fit(
       loss: "l2", "l1" or "pyramid" (multi-scale, wider basin of convergence).
       multistart: number of initial guesses fitted at once with `vmap`; guesses beyond the first are
         the initial values times exp(spread * N(0, 1)) for positive parameters; the best is kept.
+      devices: spread the multistart guesses over this many devices (`jax.sharding`); multistart
+        must be a multiple of it. None or 1: one device.
       fit_kwargs: passed to `diffcloth.fit.fit_params` (tol, patience, progress, callback,
         checkpoint_path, ...).
     Returns:
@@ -123,6 +126,15 @@ def fit(
     """
     from diffcloth import pipeline
 
+    if devices is not None and (
+        isinstance(devices, bool) or not isinstance(devices, int) or devices < 1
+    ):
+        raise ValueError(f"devices must be an integer >= 1, got {devices!r}")
+    if devices is not None and devices > 1 and multistart % devices:
+        raise ValueError(
+            f"devices = {devices} spreads the multistart guesses over devices, so multistart must "
+            f"be a multiple of it (got multistart = {multistart}); a single fit runs on one device"
+        )
     free = list(free)
     if not free:
         raise ValueError("free must name at least one parameter to fit")
@@ -157,7 +169,9 @@ def fit(
             else:
                 guess[n] = v + spread * 0.1 * rng.standard_normal(np.shape(v))
         inits.append(guess)
-    return fit_multistart(loss_fn, inits, cons, **common)
+    return fit_multistart(
+        loss_fn, inits, cons, devices=devices if devices and devices > 1 else None, **common
+    )
 
 
 def scene_identifiability(
