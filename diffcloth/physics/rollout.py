@@ -75,12 +75,16 @@ def rollout(
     colliders=None,
     pin_path=None,
     debug: bool = False,
+    collect: bool = True,
 ) -> ClothState:
     """Simulate `num_frames` frames; return the trajectory (frames, rows, cols, 3) for x and v.
 
     Frame k of the trajectory is the state after k + 1 steps (the initial state is not included).
-    The frame body is `jax.checkpoint`-ed, so the memory of a gradient grows with the number of
-    frames only by one state per frame.
+    Checkpointing: the substeps of a frame and the frames themselves are `jax.checkpoint`-ed, and
+    rollouts longer than NESTED_FRAMES frames are scanned in blocks of ceil(sqrt(frames)) frames,
+    each block checkpointed too. A gradient then keeps O(sqrt(frames) + substeps) states instead of
+    one per substep (plus the returned trajectory itself; `advance` returns no trajectory, so its
+    gradient memory grows sublinearly with the rollout length). See benchmarks/memory.py.
 
     Args:
       net, sim: fixed structure and settings (sim.integrator picks the integrator).
@@ -93,6 +97,7 @@ def rollout(
       pin_path: optional (num_frames, rows, cols, 3): where pinned points are at the end of each frame.
       debug: add `checkify` checks that every frame is finite; wrap the caller in
         `jax.experimental.checkify.checkify` to collect them (as `simulate(debug=True)` does).
+      collect: False returns only the final state (no trajectory; what `advance` uses).
 
     >>> net = grid_net(4, 4, (0.3, 0.3), pinned="top_row")     # doctest: +SKIP
     >>> traj = rollout(net, make_sim(), make_material(), rest_state(net), num_frames=10)  # doctest: +SKIP
@@ -123,16 +128,64 @@ def rollout(
         return new, new
 
     xs = (colliders if moving else None, pin_path)
-    _, traj = jax.lax.scan(jax.checkpoint(body, prevent_cse=False), state, xs, length=num_frames)
-    return traj
+    final, traj = checkpointed_scan(body, state, xs, num_frames, collect=collect)
+    return traj if collect else final
 
 
 def advance(net, sim, material, state, *, num_frames: int, colliders=None) -> ClothState:
-    """The state after `num_frames` frames (num_frames = 0 returns `state` unchanged)."""
+    """The state after `num_frames` frames (num_frames = 0 returns `state` unchanged).
+
+    Unlike `rollout(...)[-1]` no trajectory is built, so the gradient memory grows sublinearly
+    with num_frames (O(sqrt(num_frames)) frame states, see `checkpointed_scan`).
+    """
     if num_frames == 0:
         return state
-    traj = rollout(net, sim, material, state, num_frames=num_frames, colliders=colliders)
-    return jax.tree_util.tree_map(lambda a: a[-1], traj)
+    return rollout(
+        net, sim, material, state, num_frames=num_frames, colliders=colliders, collect=False
+    )
+
+
+#: rollouts longer than this many frames are checkpointed in two levels (sqrt blocks).
+NESTED_FRAMES = 64
+
+
+def checkpointed_scan(body, carry, xs, length: int, *, collect: bool = True):
+    """`lax.scan(jax.checkpoint(body), carry, xs, length)` with sublinear gradient memory.
+
+    For length > NESTED_FRAMES the scan runs over blocks of B = ceil(sqrt(length)) steps, and each
+    block is checkpointed as a whole: the backward pass keeps one carry per block and, while it
+    differentiates one block, one carry per step of that block, i.e. O(sqrt(length)) carries
+    instead of `length`, at the price of one more forward pass. Results are identical.
+
+    Args:
+      body: (carry, x) -> (carry, y).
+      xs: pytree with leading axis `length`, or None.
+      collect: return the stacked ys (like lax.scan); False returns None for them.
+    Returns:
+      (final carry, ys or None).
+    """
+    step_fn = jax.checkpoint(body, prevent_cse=False)
+
+    def one(c, x):
+        c, y = step_fn(c, x)
+        return c, (y if collect else None)
+
+    if length <= NESTED_FRAMES:
+        return jax.lax.scan(one, carry, xs, length=length)
+    size = math.isqrt(length - 1) + 1
+    blocks, rest = divmod(length, size)
+    tmap = jax.tree_util.tree_map
+    head = tmap(lambda a: a[: blocks * size].reshape((blocks, size) + a.shape[1:]), xs)
+    block = jax.checkpoint(lambda c, x: jax.lax.scan(one, c, x, length=size), prevent_cse=False)
+    carry, ys = jax.lax.scan(block, carry, head, length=blocks)
+    if collect:
+        ys = tmap(lambda a: a.reshape((blocks * size,) + a.shape[2:]), ys)
+    if rest:
+        tail = tmap(lambda a: a[blocks * size :], xs)
+        carry, ys_rest = jax.lax.scan(one, carry, tail, length=rest)
+        if collect:
+            ys = tmap(lambda a, b: jnp.concatenate([a, b]), ys, ys_rest)
+    return carry, ys
 
 
 def stable_substep(net: Net, sim: SimSettings, material: Material) -> float:
