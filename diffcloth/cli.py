@@ -19,6 +19,8 @@ def _simulate(args) -> int:
     from diffcloth import physics
     from diffcloth.config import ConfigError, build_physics, load_config
     from diffcloth.physics.rollout import ADVICE
+    from diffcloth.pipeline import split_colliders
+    from diffcloth.scene import parse_bodies
 
     try:
         config = load_config(args.config)
@@ -26,6 +28,11 @@ def _simulate(args) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     scene = build_physics(config)
+    try:
+        bodies, two_way = parse_bodies(config.sections)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     num_frames = scene.num_frames if args.frames is None else args.frames
     if num_frames < 1:
         print(f"error: --frames must be >= 1, got {num_frames}", file=sys.stderr)
@@ -33,7 +40,7 @@ def _simulate(args) -> int:
     net, sim, material = scene.net, scene.sim, scene.material
     print(
         f"diffcloth simulate {args.config}: net {net.rows}x{net.cols}, {num_frames} frames, "
-        f"{sim.num_substeps} substeps/frame, {sim.integrator}",
+        f"{sim.num_substeps} substeps/frame, {sim.integrator}, {len(bodies)} rigid bodies",
         flush=True,
     )
     try:
@@ -44,21 +51,37 @@ def _simulate(args) -> int:
     chunk = max(1, min(args.chunk, num_frames))
     jitted = {}
 
-    def run(state, n):
-        if n not in jitted:
-            jitted[n] = jax.jit(
-                lambda s: physics.rollout(
-                    net, sim, material, s, num_frames=n, colliders=scene.colliders
-                )
-            )
-        return jitted[n](state)
+    planes, spheres = split_colliders(scene.colliders)
 
-    state, parts, done, t0 = scene.state, [], 0, time.perf_counter()
+    def run(state, bods, n):
+        if n not in jitted:
+            if bodies:
+                jitted[n] = jax.jit(
+                    lambda s, b: physics.coupled_rollout(
+                        net, sim, material, s, b, num_frames=n, planes=planes, colliders=spheres,
+                        two_way=two_way,
+                    )
+                )  # fmt: skip
+            else:
+                jitted[n] = jax.jit(
+                    lambda s, b: (
+                        physics.rollout(
+                            net, sim, material, s, num_frames=n, colliders=scene.colliders
+                        ),
+                        (),
+                    )
+                )
+        return jitted[n](state, bods)
+
+    last = lambda tree: jax.tree_util.tree_map(lambda a: a[-1], tree)
+    state, bods, parts, body_parts = scene.state, bodies, [], []
+    done, t0 = 0, time.perf_counter()
     while done < num_frames:
         n = min(chunk, num_frames - done)
-        traj = run(state, n)
-        state = jax.tree_util.tree_map(lambda a: a[-1], traj)
+        traj, body_traj = run(state, bods, n)
+        state, bods = last(traj), last(body_traj)
         parts.append(traj)
+        body_parts.append(body_traj)
         done += n
         elapsed = time.perf_counter() - t0
         print(f"  frame {done:4d}/{num_frames}  {elapsed:6.1f} s", flush=True)
@@ -69,6 +92,12 @@ def _simulate(args) -> int:
     v = np.concatenate([np.asarray(p.v) for p in parts])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    extra = {}
+    if bodies:  # (T, num_bodies, ...) body states
+        for field in ("position", "orientation", "velocity", "angular_velocity"):
+            extra[f"body_{field}"] = np.concatenate(
+                [np.stack([np.asarray(getattr(b, field)) for b in bt], axis=1) for bt in body_parts]
+            )
     np.savez(
         out / "trajectory.npz",
         x=x,
@@ -76,6 +105,7 @@ def _simulate(args) -> int:
         rest=np.asarray(net.rest),
         pinned=np.asarray(net.pinned),
         dt=float(np.asarray(sim.dt)),
+        **extra,
     )
     print(f"wrote {out / 'trajectory.npz'}: x {x.shape} ({time.perf_counter() - t0:.1f} s)")
     if args.obj:
@@ -97,6 +127,78 @@ def _force_host_devices(n: int) -> None:
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_force_host_platform_device_count" not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
+
+
+def _render(args) -> int:
+    import jax
+
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    from diffcloth import pipeline
+    from diffcloth.config import ConfigError, load_config
+    from diffcloth.experiment import video_strip
+    from diffcloth.io import save_png, save_video
+    from diffcloth.scene import build_scene
+
+    try:
+        config = load_config(args.config)
+        overrides = {}
+        if args.size is not None:
+            overrides.update(width=args.size, height=args.size)
+        scene = build_scene(config, overrides=overrides or None)
+    except (ConfigError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    T, k = scene.num_frames, scene.frame_stride
+    h, w = scene.image_shape
+    print(
+        f"diffcloth render {args.config}: {T} frames (every {k}), {len(scene.cameras)} camera(s) "
+        f"{w}x{h}, shading {scene.shading}, {len(scene.bodies)} rigid bodies",
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    traj, bodies = jax.jit(pipeline.simulate_all)(scene)
+    if not bool(np.all(np.isfinite(np.asarray(traj.x)))):
+        print(
+            "error: the simulation became non-finite; lower dt or raise num_substeps",
+            file=sys.stderr,
+        )
+        return 1
+    print(f"  simulated in {time.perf_counter() - t0:.1f} s", flush=True)
+    xs = traj.x[k - 1 :: k]
+    spheres = pipeline.frame_spheres(scene, bodies)
+    if spheres is not None:
+        spheres = type(spheres)(spheres.center[k - 1 :: k], spheres.radius)
+    render_chunk = jax.jit(pipeline.render_frames)
+    chunk = max(1, args.chunk)
+    parts = []
+    for a in range(0, xs.shape[0], chunk):
+        sl = slice(a, min(a + chunk, xs.shape[0]))
+        sp = None if spheres is None else type(spheres)(spheres.center[sl], spheres.radius)
+        if xs[sl].shape[0] != chunk:  # pad the last chunk: one compiled shape
+            pad = chunk - xs[sl].shape[0]
+            x_part = np.concatenate([xs[sl], np.repeat(xs[sl][-1:], pad, 0)])
+            if sp is not None:
+                c = np.concatenate([sp.center, np.repeat(sp.center[-1:], pad, 0)])
+                sp = type(spheres)(c, sp.radius)
+            parts.append(np.asarray(render_chunk(scene, x_part, sp))[:, : chunk - pad])
+        else:
+            parts.append(np.asarray(render_chunk(scene, xs[sl], sp)))
+        done = min(a + chunk, xs.shape[0])
+        print(f"  rendered {done:4d}/{xs.shape[0]}  {time.perf_counter() - t0:6.1f} s", flush=True)
+    video = np.concatenate(parts, axis=1)  # (cams, T, H, W, 3) linear RGB
+    display = np.clip(video_strip(video), 0.0, 1.0) ** (1.0 / 2.2)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = save_video(out / f"video.{args.format}", display, fps=args.fps)
+    save_png(out / "first.png", display[0])
+    save_png(out / "last.png", display[-1])
+    if args.npy:
+        np.save(out / "video.npy", video.astype(np.float32))
+    print(f"wrote {path}, first.png, last.png ({time.perf_counter() - t0:.1f} s)")
+    return 0
 
 
 def _fit(args) -> int:
@@ -156,6 +258,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="only warn when dt/num_substeps exceeds the explicit stability estimate",
     )
     p.set_defaults(func=_simulate)
+    r = sub.add_parser(
+        "render", help="simulate and render a config; write DIR/video.mp4 (or .gif) and PNGs"
+    )
+    r.add_argument(
+        "config", help="scene TOML (e.g. configs/drape.toml, configs/ball_into_cloth.toml)"
+    )
+    r.add_argument("--out", required=True, help="output folder")
+    r.add_argument("--size", type=int, default=None, help="override [render] width and height")
+    r.add_argument("--format", choices=("mp4", "gif"), default="mp4", help="video format")
+    r.add_argument("--fps", type=float, default=30.0)
+    r.add_argument("--chunk", type=int, default=10, help="frames rendered per compiled call")
+    r.add_argument("--npy", action="store_true", help="also write the linear video as video.npy")
+    r.add_argument("--x64", action="store_true", help="run in float64")
+    r.set_defaults(func=_render)
     f = sub.add_parser("fit", help="fit scene parameters to target images; write DIR/report.md")
     f.add_argument("config", help="scene + [fit] TOML (e.g. configs/drape_fit.toml)")
     f.add_argument("--out", required=True, help="output folder")

@@ -1,9 +1,11 @@
 """The whole pipeline as one differentiable function:
 
-    physics.rollout -> surface.tessellate -> surface.collide_surface -> render.render -> video
+    physics.rollout (or coupled_rollout with rigid bodies) -> surface.tessellate
+        -> surface.collide_surface -> render.render -> video
 
 `simulate_and_render(scene, params)` returns the video of every camera; `params` is a dict of named
-values that override the scene's own (material, wind, appearance), so any of them can be fitted.
+values that override the scene's own (material, wind, appearance, rigid bodies), so any of them
+can be fitted.
 """
 
 from __future__ import annotations
@@ -17,14 +19,33 @@ import jax.numpy as jnp
 from diffcloth import physics, render, surface
 from diffcloth.physics.material import MATERIAL_FIELDS
 from diffcloth.render.lights import _APPEARANCE_DEFAULTS
+from diffcloth.shapes import Sphere
 
-__all__ = ["PARAMETERS", "apply_params", "render_frames", "simulate", "simulate_and_render"]
+__all__ = [
+    "PARAMETERS",
+    "apply_params",
+    "param_value",
+    "render_frames",
+    "simulate",
+    "simulate_all",
+    "simulate_and_render",
+]
+
+#: body parameter name -> RigidBody field; values are per body, (num_bodies,) or (num_bodies, 3).
+BODY_PARAMETERS = {
+    "body_mass": "mass",
+    "body_restitution": "restitution",
+    "body_friction": "friction",
+    "body_velocity": "velocity",
+    "body_position": "position",
+}
 
 #: name -> (scene field, field inside it). Every fittable parameter of a scene.
 PARAMETERS: dict[str, tuple[str, str]] = {
     **{name: ("material", name) for name in MATERIAL_FIELDS},
     "wind": ("sim", "wind"),
     **{name: ("appearance", name) for name in _APPEARANCE_DEFAULTS},
+    **{name: ("bodies", field) for name, field in BODY_PARAMETERS.items()},
 }
 
 
@@ -37,25 +58,80 @@ def check_param_names(names) -> None:
         )
 
 
+def _check_bodies(scene, name: str) -> None:
+    if not scene.bodies:
+        raise ValueError(f"{name}: the scene has no rigid bodies (add [[bodies]] to the config)")
+
+
+def param_value(scene, name: str) -> jax.Array:
+    """The scene's current value of a named parameter (body parameters: stacked over bodies)."""
+    check_param_names([name])
+    group, field = PARAMETERS[name]
+    if group == "bodies":
+        _check_bodies(scene, name)
+        return jnp.stack([getattr(b, field) for b in scene.bodies])
+    return getattr(getattr(scene, group), field)
+
+
 def apply_params(scene, params: Mapping[str, jax.Array] | None):
-    """The scene with `params` (name -> value) written into its material, sim and appearance."""
+    """The scene with `params` (name -> value) written into its material, sim, appearance and
+    rigid bodies. Body parameters take one value per body ((num_bodies,) or (num_bodies, 3)) or
+    one value for all of them."""
     if not params:
         return scene
     check_param_names(params)
     groups: dict[str, dict] = {}
     for name, value in params.items():
         group, field = PARAMETERS[name]
-        old = getattr(getattr(scene, group), field)
+        old = param_value(scene, name)
         groups.setdefault(group, {})[field] = jnp.broadcast_to(
             jnp.asarray(value, old.dtype), old.shape
         )
+    body_fields = groups.pop("bodies", None)
     changes = {g: dataclasses.replace(getattr(scene, g), **f) for g, f in groups.items()}
+    if body_fields:
+        changes["bodies"] = tuple(
+            dataclasses.replace(b, **{f: v[i] for f, v in body_fields.items()})
+            for i, b in enumerate(scene.bodies)
+        )
     return dataclasses.replace(scene, **changes)
+
+
+def split_colliders(colliders):
+    """Static Colliders -> (planes or None, spheres or None), as `physics.coupled_rollout` takes
+    them: the planes act on bodies and cloth, the spheres on the cloth only."""
+    if colliders is None:
+        return None, None
+    planes = colliders.planes if colliders.planes.offset.shape[0] else None
+    spheres = colliders.spheres if colliders.num_spheres else None
+    return planes, spheres
+
+
+def simulate_all(scene, params=None) -> tuple[physics.ClothState, tuple]:
+    """Cloth and rigid-body trajectories: (ClothState with leaves (num_frames, rows, cols, 3),
+    tuple of RigidBody with a leading num_frames axis; empty without bodies)."""
+    scene = apply_params(scene, params)
+    if not scene.bodies:
+        return simulate(scene), ()
+    planes, spheres = split_colliders(scene.colliders)
+    return physics.coupled_rollout(
+        scene.net,
+        scene.sim,
+        scene.material,
+        scene.state,
+        scene.bodies,
+        num_frames=scene.num_frames,
+        planes=planes,
+        colliders=spheres,
+        two_way=scene.two_way,
+    )
 
 
 def simulate(scene, params=None) -> physics.ClothState:
     """The cloth trajectory: ClothState with leaves (num_frames, rows, cols, 3)."""
     scene = apply_params(scene, params)
+    if scene.bodies:
+        return simulate_all(scene)[0]
     return physics.rollout(
         scene.net,
         scene.sim,
@@ -66,11 +142,14 @@ def simulate(scene, params=None) -> physics.ClothState:
     )
 
 
-def render_frame(scene, x: jax.Array) -> jax.Array:
-    """One control net (rows, cols, 3) -> images (num_cameras, H, W, 3) of the scene."""
+def render_frame(scene, x: jax.Array, spheres=None) -> jax.Array:
+    """One control net (rows, cols, 3) -> images (num_cameras, H, W, 3) of the scene.
+
+    spheres: this frame's spheres (default: the scene's static spheres)."""
+    spheres = scene.spheres if spheres is None else spheres
     surf = surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
-    if scene.spheres is not None:
-        surf = surface.collide_surface(surf, scene.spheres)
+    if spheres is not None:
+        surf = surface.collide_surface(surf, spheres)
     images = [
         render.render(
             surf,
@@ -78,7 +157,7 @@ def render_frame(scene, x: jax.Array) -> jax.Array:
             scene.lights,
             scene.shading,
             scene.appearance,
-            spheres=scene.spheres,
+            spheres=spheres,
             textures=scene.textures,
             background=scene.background,
         )[..., :3]
@@ -87,13 +166,44 @@ def render_frame(scene, x: jax.Array) -> jax.Array:
     return jnp.stack(images)
 
 
-def render_frames(scene, xs: jax.Array) -> jax.Array:
+def frame_spheres(scene, body_traj: tuple):
+    """Per-frame spheres to draw: the static ones plus the sphere bodies at each frame.
+
+    Returns None (no spheres) or a Sphere with center (T, n, 3) and radius (n,). Box bodies are
+    simulated and act on the cloth but are not drawn.
+    """
+    balls = [b for b in body_traj if b.shape == "sphere"]
+    if not balls:
+        return None
+    T = balls[0].position.shape[0]
+    centers = [jnp.stack([b.position for b in balls], axis=1)]
+    radii = [jnp.stack([b.radius[0] if b.radius.ndim else b.radius for b in balls])]
+    if scene.spheres is not None:
+        static = scene.spheres.batched()
+        centers.insert(0, jnp.broadcast_to(static.center, (T,) + static.center.shape))
+        radii.insert(0, static.radius)
+    dtype = centers[-1].dtype
+    return Sphere(
+        jnp.concatenate([c.astype(dtype) for c in centers], axis=1),
+        jnp.concatenate([r.astype(dtype) for r in radii]),
+    )
+
+
+def render_frames(scene, xs: jax.Array, spheres=None) -> jax.Array:
     """Control nets (T, rows, cols, 3) -> video (num_cameras, T, H, W, 3).
 
+    spheres: optional per-frame spheres (center (T, n, 3), radius (n,)), e.g. `frame_spheres`.
     Frames are rendered one after another (`lax.map`) with the frame body checkpointed, so the
     memory of a gradient through a long video is that of a few frames plus the trajectory.
     """
-    frames = jax.lax.map(jax.checkpoint(lambda x: render_frame(scene, x)), xs)
+    if spheres is None:
+        frames = jax.lax.map(jax.checkpoint(lambda x: render_frame(scene, x)), xs)
+    else:
+        radius = spheres.radius
+        frames = jax.lax.map(
+            jax.checkpoint(lambda a: render_frame(scene, a[0], Sphere(a[1], radius))),
+            (xs, spheres.center),
+        )
     return jnp.moveaxis(frames, 0, 1)
 
 
@@ -108,5 +218,9 @@ def simulate_and_render(scene, params=None) -> jax.Array:
       video (num_cameras, T, H, W, 3), linear RGB, T = num_frames // frame_stride (frames frame_stride, 2 frame_stride, ...).
     """
     scene = apply_params(scene, params)
-    traj = simulate(scene)
-    return render_frames(scene, traj.x[scene.frame_stride - 1 :: scene.frame_stride])
+    traj, bodies = simulate_all(scene)
+    k = scene.frame_stride
+    spheres = frame_spheres(scene, bodies)
+    if spheres is not None:
+        spheres = Sphere(spheres.center[k - 1 :: k], spheres.radius)
+    return render_frames(scene, traj.x[k - 1 :: k], spheres)

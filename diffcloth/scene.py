@@ -14,6 +14,11 @@ Render sections of a scene config (the physics sections are documented in docs/c
     [lights]    ambient [r, g, b]; [[lights.directional]] direction, color, intensity;
                 [[lights.point]] position, color, intensity
     [appearance] any field of render.Appearance (diffuse = [r, g, b], minnaert_k = 0.7, ...)
+    [[bodies]]  rigid bodies (see `physics.rigid.bodies_from_config`: shape, radius or half_extents,
+                mass, position, velocity, restitution, friction, drag, ...), simulated with the
+                cloth by `physics.coupled_rollout`; sphere bodies are drawn and pushed out of the
+                rendered surface
+    [coupling]  two_way = true (the cloth's contact impulses act back on the bodies)
 """
 
 from __future__ import annotations
@@ -42,6 +47,8 @@ class Scene:
       cameras: tuple of `render.Camera`, all of the same image size.
       lights, appearance, textures: shading inputs (textures may be None).
       num_frames, level, basis, shading, flip, frame_stride, background: static settings.
+      bodies: tuple of `physics.RigidBody` simulated with the cloth (empty: cloth only).
+      two_way: static; whether the cloth pushes back on the bodies.
     """
 
     net: Any
@@ -61,6 +68,8 @@ class Scene:
     flip: bool = dataclasses.field(default=True, metadata={"static": True})
     frame_stride: int = dataclasses.field(default=1, metadata={"static": True})
     background: tuple = dataclasses.field(default=(0.05, 0.05, 0.08), metadata={"static": True})
+    bodies: tuple = ()
+    two_way: bool = dataclasses.field(default=True, metadata={"static": True})
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -187,6 +196,25 @@ def _parse_appearance(t: Mapping[str, Any], dtype):
         raise cfg.ConfigError(f"[appearance] {err}") from None
 
 
+def parse_bodies(sections: Mapping[str, Any], dtype=None) -> tuple[tuple, bool]:
+    """[[bodies]] and [coupling] of a config -> (tuple of RigidBody, two_way)."""
+    from diffcloth.physics.rigid import bodies_from_config
+
+    entries = sections.get("bodies", [])
+    if not isinstance(entries, list):
+        raise cfg.ConfigError("[[bodies]] must be an array of tables ([[bodies]] per body)")
+    try:
+        bodies = bodies_from_config(entries, dtype=dtype)
+    except (ValueError, TypeError) as err:
+        raise cfg.ConfigError(f"[[bodies]] {err}") from None
+    t = sections.get("coupling", {})
+    cfg.check_keys(t, ("two_way",), "coupling")
+    two_way = t.get("two_way", True)
+    if not isinstance(two_way, bool):
+        raise cfg.ConfigError(f"[coupling] two_way = {two_way!r} must be true or false")
+    return tuple(bodies), two_way
+
+
 def build_scene(
     config: cfg.Config, dtype=None, *, overrides: Mapping[str, Any] | None = None
 ) -> Scene:
@@ -205,6 +233,7 @@ def build_scene(
     if spheres is not None and spheres.center.shape[0] == 0:
         spheres = None
     textures = render.default_textures(dtype=dtype) if rc.textures == "default" else None
+    bodies, two_way = parse_bodies(sections, dtype)
     return Scene(
         net=phys.net,
         sim=phys.sim,
@@ -223,6 +252,8 @@ def build_scene(
         flip=rc.flip,
         frame_stride=rc.frame_stride,
         background=rc.background,
+        bodies=bodies,
+        two_way=two_way,
     )
 
 

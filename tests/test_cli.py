@@ -107,3 +107,43 @@ def test_fit_config_devices_must_divide_multistart():
         parse_fit({"fit": {**base, "devices": 3}, "truth": {"bend": 1e-3}})
     with pytest.raises(ConfigError, match="devices"):
         parse_fit({"fit": {**base, "devices": 0}, "truth": {"bend": 1e-3}})
+
+
+BALL = SMALL.replace(
+    "[camera]",
+    """
+[[planes]]
+normal = [0.0, 1.0, 0.0]
+offset = -0.2
+
+[[bodies]]
+shape = "sphere"
+radius = 0.06
+mass = 0.1
+position = [0.0, 0.3, 0.4]
+velocity = [0.0, 0.0, -3.0]
+
+[camera]""",
+)
+
+
+def test_render_and_simulate_with_a_rigid_body(tmp_path, capsys):
+    import imageio.v3 as iio
+
+    path = tmp_path / "ball.toml"
+    path.write_text(BALL)
+    out = tmp_path / "render"
+    assert main(["render", str(path), "--out", str(out), "--size", "16", "--format", "gif",
+                 "--chunk", "4"]) == 0  # fmt: skip
+    video = iio.imread(out / "video.gif")
+    assert video.shape[:3] == (6, 16, 16)  # 6 frames (the last chunk padded, then cut)
+    assert (out / "first.png").exists() and (out / "last.png").exists()
+    assert "1 rigid bodies" in capsys.readouterr().out
+    assert main(["simulate", str(path), "--out", str(tmp_path / "sim"), "--chunk", "4"]) == 0
+    traj = np.load(tmp_path / "sim" / "trajectory.npz")
+    assert traj["body_position"].shape == (6, 1, 3)
+    assert traj["body_position"][-1, 0, 2] < 0.4 - 0.1  # thrown towards -z
+    bad = tmp_path / "bad.toml"
+    bad.write_text(BALL.replace("mass = 0.1", "mass = 0.0"))
+    assert main(["render", str(bad), "--out", str(tmp_path / "bad")]) == 2
+    assert "mass" in capsys.readouterr().err

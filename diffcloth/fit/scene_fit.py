@@ -36,8 +36,10 @@ _COLOURS = ("ambient", "diffuse", "specular", "reflectance", "sphere_color")
 
 def default_constraint(name: str):
     """Log space for positive physical quantities, (0, 1) for colours and blends, none for wind."""
-    if name == "wind":
+    if name in ("wind", "body_velocity", "body_position"):
         return Identity()
+    if name == "body_restitution":
+        return Bounded(0.0, 1.0)
     if name in _COLOURS or name in _UNIT_INTERVAL:
         return Bounded(0.0, 1.0)
     if name == "bump_strength":
@@ -146,8 +148,10 @@ def fit(
         targets = targets[None]
     targets = validate_targets(targets, scene.video_shape, name="targets")
     targets = jnp.asarray(targets, scene.material.stretch.dtype)
-    current = {n: getattr(getattr(scene, g), f) for n, (g, f) in pipeline.PARAMETERS.items()}
-    init = {n: np.asarray(init[n] if init and n in init else current[n]) for n in free}
+    init = {
+        n: np.asarray(init[n] if init and n in init else pipeline.param_value(scene, n))
+        for n in free
+    }
     cons = {n: (constraints or {}).get(n, default_constraint(n)) for n in free}
     loss_fn = _loss_fn(loss)
     common = dict(

@@ -12,6 +12,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from diffcloth._math import safe_div
 from diffcloth.physics.forces import _direction_planar, _dot
@@ -54,8 +55,8 @@ def make_colliders(spheres=(), planes=(), *, sphere_velocity=None, dtype=None) -
         planes = [planes]
     sb = [s.batched() for s in spheres]
     pb = [p.batched() for p in planes]
-    for s in sb:
-        if not bool(jnp.all(s.radius >= 0)):
+    for s in sb:  # eager check only: under jit the radius is a tracer (validated at build time)
+        if not isinstance(s.radius, jax.core.Tracer) and not np.all(np.asarray(s.radius) >= 0):
             raise ValueError(f"sphere radius must be >= 0 (allowed range [0, inf)), got {s.radius}")
     centers = jnp.concatenate([s.center for s in sb], 0) if sb else jnp.zeros((0, 3), dtype)
     radii = jnp.concatenate([s.radius for s in sb], 0) if sb else jnp.zeros((0,), dtype)
