@@ -241,6 +241,49 @@ def _fit(args) -> int:
     return 0
 
 
+BENCHMARKS = ("physics", "surface", "render", "shading", "rigid", "memory")
+
+
+def _bench(args) -> int:
+    """Run the stage benchmarks of a source checkout (benchmarks/*.py); each prints JSON lines."""
+    import shlex
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1] / "benchmarks"
+    if not root.is_dir():
+        print(
+            f"error: no benchmarks/ folder next to the package ({root}); the benchmarks ship with "
+            "the source checkout (git clone, then pip install -e .)",
+            file=sys.stderr,
+        )
+        return 2
+    stages = args.stages or list(BENCHMARKS)
+    unknown = [st for st in stages if st not in BENCHMARKS]
+    if unknown:
+        print(
+            f"error: unknown benchmark(s) {unknown}; allowed: {', '.join(BENCHMARKS)}",
+            file=sys.stderr,
+        )
+        return 2
+    out = None if args.out is None else Path(args.out)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    for stage in stages:
+        cmd = [sys.executable, str(root / f"{stage}.py")]
+        if args.quick and "--quick" in (root / f"{stage}.py").read_text():
+            cmd.append("--quick")
+        cmd += shlex.split(args.args or "")
+        print(f"# {' '.join(cmd)}", flush=True)
+        res = subprocess.run(cmd, capture_output=out is not None, text=True)
+        if out is not None:
+            (out / f"{stage}.jsonl").write_text(res.stdout)
+            print(res.stdout, end="", flush=True)
+        if res.returncode:
+            print(f"error: benchmark {stage} failed (exit {res.returncode})", file=sys.stderr)
+            return 1
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="diffcloth", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -272,6 +315,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--npy", action="store_true", help="also write the linear video as video.npy")
     r.add_argument("--x64", action="store_true", help="run in float64")
     r.set_defaults(func=_render)
+    b = sub.add_parser("bench", help="run the stage benchmarks (JSON lines); needs the checkout")
+    b.add_argument("stages", nargs="*", help=f"some of {', '.join(BENCHMARKS)} (default: all)")
+    b.add_argument("--quick", action="store_true", help="small sizes, fewer repeats")
+    b.add_argument("--out", default=None, help="also write DIR/<stage>.jsonl")
+    b.add_argument(
+        "--args", default=None, help='extra arguments for the script(s), e.g. "--repeats 3"'
+    )
+    b.set_defaults(func=_bench)
     f = sub.add_parser("fit", help="fit scene parameters to target images; write DIR/report.md")
     f.add_argument("config", help="scene + [fit] TOML (e.g. configs/drape_fit.toml)")
     f.add_argument("--out", required=True, help="output folder")

@@ -147,3 +147,15 @@ def test_render_and_simulate_with_a_rigid_body(tmp_path, capsys):
     bad.write_text(BALL.replace("mass = 0.1", "mass = 0.0"))
     assert main(["render", str(bad), "--out", str(tmp_path / "bad")]) == 2
     assert "mass" in capsys.readouterr().err
+
+
+def test_bench_runs_a_stage_benchmark_and_rejects_unknown_ones(tmp_path, capsys):
+    assert main(["bench", "nope"]) == 2
+    assert "unknown benchmark(s) ['nope']" in capsys.readouterr().err
+    args = ["bench", "surface", "--out", str(tmp_path), "--args", "--levels 2 --repeats 2"]
+    assert main(args) == 0
+    lines = (tmp_path / "surface.jsonl").read_text().strip().splitlines()
+    import json
+
+    rows = [json.loads(line) for line in lines]
+    assert rows and all("bench" in r for r in rows)
