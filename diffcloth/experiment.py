@@ -50,6 +50,13 @@ class FitSettings:
     truth: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
 
+_BODY_RANGES = {  # name -> (lo, hi, allowed range as text); mass excludes 0
+    "body_mass": (0.0, np.inf, "(0, inf) kg"),
+    "body_restitution": (0.0, 1.0, "[0, 1]"),
+    "body_friction": (0.0, np.inf, "[0, inf)"),
+}
+
+
 def _param_value(name: str, value, where: str):
     if isinstance(value, bool) or not isinstance(value, int | float | list):
         raise cfg.ConfigError(f"[{where}] {name} = {value!r} must be a number or a list of numbers")
@@ -98,6 +105,10 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
                 raise cfg.ConfigError(
                     f"[truth] {name} = {value!r} is out of range; allowed {material_range(name)} {unit}"
                 )
+        if name in _BODY_RANGES:
+            lo, hi, text = _BODY_RANGES[name]
+            if not np.all((arr > lo if name == "body_mass" else arr >= lo) & (arr <= hi)):
+                raise cfg.ConfigError(f"[truth] {name} = {value!r} is out of range; allowed {text}")
         truth[name] = arr
     targets = t.get("targets")
     if targets is None and not truth:

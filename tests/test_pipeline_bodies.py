@@ -82,3 +82,14 @@ def test_video_gradient_wrt_body_mass_and_restitution_matches_fd(ball_scene):
         ad = float(g[name][0])
         assert np.isfinite(ad) and abs(ad) > 0, (name, ad, fd)
         np.testing.assert_allclose(ad, fd, rtol=2e-2, atol=1e-9, err_msg=name)
+
+
+def test_fit_config_checks_body_truth_ranges():
+    from diffcloth.experiment import parse_fit
+
+    fit = {"free": ["body_mass"]}
+    assert parse_fit({"fit": fit, "truth": {"body_mass": 0.3}}).truth["body_mass"] == 0.3
+    with pytest.raises(cfg.ConfigError, match=r"body_restitution = 1.5 .* allowed \[0, 1\]"):
+        parse_fit({"fit": fit, "truth": {"body_restitution": 1.5}})
+    with pytest.raises(cfg.ConfigError, match=r"body_mass = 0.0 .* allowed \(0, inf\) kg"):
+        parse_fit({"fit": fit, "truth": {"body_mass": 0.0}})
