@@ -35,18 +35,30 @@ def test_checkpointed_scan_matches_lax_scan(length):
     np.testing.assert_allclose(final, ref(c0)[0], rtol=1e-14)
 
 
-def _grad_temp_mb(frames):
-    net = physics.grid_net(4, 4, (0.3, 0.3), pinned="top_row")
-    sim = physics.make_sim(1 / 60, num_substeps=2)
-    s0 = physics.rest_state(net)
+def _grad_temp_mb(length):
+    """XLA temporaries of the gradient of a final-carry loss through `length` steps."""
+    xs = jnp.zeros((length, 1))
 
-    def loss(m):
-        return jnp.sum(physics.advance(net, sim, m, s0, num_frames=frames).x ** 2)
+    def loss(c):
+        final, _ = checkpointed_scan(_body, c, xs, length, collect=False)
+        return jnp.sum(final**2)
 
-    compiled = jax.jit(jax.grad(loss)).lower(physics.make_material()).compile()
+    compiled = jax.jit(jax.grad(loss)).lower(jnp.ones(4096)).compile()
     return compiled.memory_analysis().temp_size_in_bytes / 2**20
 
 
 def test_gradient_memory_grows_sublinearly():
-    small, large = _grad_temp_mb(100), _grad_temp_mb(1600)  # 16x the frames
-    assert large < 4.0 * small, (small, large)  # sqrt growth: about 4x at most; linear would be 16x
+    small, large = _grad_temp_mb(100), _grad_temp_mb(1600)  # 16x the steps
+    # sqrt growth: about 4x at most; one stored carry per step would be 16x (0.03 MB per carry)
+    assert large < 4.0 * small and large < 0.25 * 1600 * 4096 * 8 / 2**20, (small, large)
+
+
+def test_advance_is_the_last_frame_of_rollout():
+    net = physics.grid_net(4, 4, (0.3, 0.3), pinned="top_row")
+    sim = physics.make_sim(1 / 60, num_substeps=2)
+    s0, mat = physics.rest_state(net), physics.make_material()
+    frames = NESTED_FRAMES + 6
+    last = physics.advance(net, sim, mat, s0, num_frames=frames)
+    traj = physics.rollout(net, sim, mat, s0, num_frames=frames)
+    np.testing.assert_array_equal(last.x, traj.x[-1])
+    np.testing.assert_array_equal(last.v, traj.v[-1])
