@@ -287,7 +287,18 @@ def _bench(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="diffcloth", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("simulate", help="simulate a config; write DIR/trajectory.npz")
+    cache = argparse.ArgumentParser(add_help=False)
+    cache.add_argument(
+        "--cache",
+        default=None,
+        metavar="DIR",
+        help="JAX persistent compilation cache folder (default $DIFFCLOTH_CACHE or "
+        "~/.cache/diffcloth/jax): a second run of the same config skips compilation",
+    )
+    cache.add_argument("--no-cache", action="store_true", help="do not use the compilation cache")
+    p = sub.add_parser(
+        "simulate", parents=[cache], help="simulate a config; write DIR/trajectory.npz"
+    )
     p.add_argument("config", help="scene TOML (see docs/config.md)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--frames", type=int, default=None, help="override [sim] num_frames")
@@ -302,7 +313,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_simulate)
     r = sub.add_parser(
-        "render", help="simulate and render a config; write DIR/video.mp4 (or .gif) and PNGs"
+        "render",
+        parents=[cache],
+        help="simulate and render a config; write DIR/video.mp4 (or .gif) and PNGs",
     )
     r.add_argument(
         "config", help="scene TOML (e.g. configs/drape.toml, configs/ball_into_cloth.toml)"
@@ -323,7 +336,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--args", default=None, help='extra arguments for the script(s), e.g. "--repeats 3"'
     )
     b.set_defaults(func=_bench)
-    f = sub.add_parser("fit", help="fit scene parameters to target images; write DIR/report.md")
+    f = sub.add_parser(
+        "fit", parents=[cache], help="fit scene parameters to target images; write DIR/report.md"
+    )
     f.add_argument("config", help="scene + [fit] TOML (e.g. configs/drape_fit.toml)")
     f.add_argument("--out", required=True, help="output folder")
     f.add_argument("--steps", type=int, default=None, help="override [fit] steps")
@@ -342,6 +357,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    from diffcloth.runtime import cache_disabled, enable_compilation_cache
+
+    explicit = getattr(args, "cache", None) is not None
+    if not getattr(args, "no_cache", True) and (explicit or not cache_disabled()):
+        try:
+            enable_compilation_cache(args.cache)
+        except OSError as err:  # a read-only home, say: run without the cache
+            print(f"warning: compilation cache disabled ({err})", file=sys.stderr)
     return args.func(args)
 
 

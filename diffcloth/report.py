@@ -11,6 +11,8 @@ writes to the folder:
   params.png   every parameter against step, with the true value
   compare.gif  target | fit | |difference| per frame (when both videos are given)
   report.md    the table, the pictures and any extra sections
+  metrics.jsonl  one JSON line per step: step, loss, params, grad_norm, wall_s
+  environment.json  versions, backend, devices, x64 (`diffcloth.runtime.environment`)
 """
 
 from __future__ import annotations
@@ -101,6 +103,25 @@ def _table(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def write_metrics(path, history) -> Path:
+    """The fit history as JSON lines, one per evaluation: step, loss, params, grad_norm, wall_s."""
+    import json
+
+    lines = []
+    for k in range(len(history.loss)):
+        row = {
+            "step": k,
+            "loss": float(history.loss[k]),
+            "params": {n: to_jsonable(np.asarray(v[k])) for n, v in history.params.items()},
+            "grad_norm": {n: float(v[k]) for n, v in history.grad_norm.items()},
+            "wall_s": float(history.wall_s[k]),
+        }
+        lines.append(json.dumps(row, allow_nan=True))
+    path = Path(path)
+    path.write_text("\n".join(lines) + ("\n" if lines else ""))
+    return path
+
+
 def write_fit_report(
     out_dir,
     result,
@@ -130,12 +151,17 @@ def write_fit_report(
       extra_sections: {heading: markdown} or a list of markdown blocks appended to report.md.
       plots: draw loss.png and params.png (needs matplotlib).
     Returns:
-      {"result", "report", "loss", "params", "compare", "identifiability"}: the paths written.
+      {"result", "metrics", "environment", "report", "loss", "params", "compare",
+      "identifiability"}: the paths written.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summary = fit_summary(result, truth, initial)
     paths: dict[str, Path] = {"result": save_json(out / "result.json", summary)}
+    paths["metrics"] = write_metrics(out / "metrics.jsonl", result.history)
+    from diffcloth.runtime import environment
+
+    paths["environment"] = save_json(out / "environment.json", environment())
     if plots:
         from diffcloth.plots import plot_loss, plot_params
 

@@ -159,3 +159,20 @@ def test_bench_runs_a_stage_benchmark_and_rejects_unknown_ones(tmp_path, capsys)
 
     rows = [json.loads(line) for line in lines]
     assert rows and all("bench" in r for r in rows)
+
+
+def test_compilation_cache_is_written_and_reported(tmp_path):
+    script = (
+        "import jax, jax.numpy as jnp, json\n"
+        "from diffcloth import runtime\n"
+        f"runtime.enable_compilation_cache({str(tmp_path / 'cache')!r}, min_compile_seconds=0)\n"
+        "jax.jit(lambda x: jnp.sin(x) * 2)(jnp.ones(3)).block_until_ready()\n"
+        "print(json.dumps(runtime.environment()))\n"
+    )
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-2000:]
+    import json
+
+    env = json.loads(res.stdout.strip().splitlines()[-1])
+    assert env["compilation_cache"] == str(tmp_path / "cache")
+    assert any((tmp_path / "cache").iterdir())  # the compiled program was stored

@@ -74,6 +74,16 @@ def test_result_json_exact_format(tmp_path):
     md = (tmp_path / "report.md").read_text()
     assert "| stretch | 800 | 500 | 801 | 0.125 % |" in md
     assert "![loss](loss.png)" in md and "![compare](compare.gif)" in md
+    # metrics.jsonl: one line per evaluation, the history exactly; environment.json: versions
+    rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == list(range(6))
+    assert rows[-1]["loss"] == pytest.approx(1e-6) and rows[-1]["params"]["stretch"] == 801.0
+    assert rows[2]["params"]["color"] == [0.5, 0.5, 0.5] and rows[0]["grad_norm"]["stretch"] == 1.0
+    env = json.loads((tmp_path / "environment.json").read_text())
+    import jax
+
+    assert env["jax"] == jax.__version__ and env["backend"] == jax.default_backend()
+    assert env["x64"] is True  # the test suite runs in float64
 
 
 def test_report_with_identifiability_and_sections(tmp_path):
