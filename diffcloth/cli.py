@@ -230,6 +230,8 @@ def _fit(args) -> int:
     except (ConfigError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    if summary.get("diagnosis"):
+        print(f"  stopped on a non-finite loss; stage check: {summary['diagnosis']}")
     for name, row in summary["params"].items():
         err = row.get("relative_error")
         tail = f"  relative error {err:.2%}" if err is not None else ""

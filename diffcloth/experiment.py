@@ -252,6 +252,13 @@ def run_fit_config(
     multi = None
     if settings.multistart > 1:
         multi, result = result, result.best
+    diagnosis = None
+    if result.status == "nonfinite":  # name the stage where the values stopped being finite
+        bad = {k: v[-1] for k, v in result.history.params.items()}
+        diagnosis = pipeline.diagnose(sc, bad) or (
+            "every stage is finite at the last parameters: the loss or its gradient overflowed "
+            "(lower the learning rate?)"
+        )
     render_fn = jax.jit(pipeline.simulate_and_render)
     fitted_video = np.asarray(render_fn(sc, {k: np.asarray(v) for k, v in result.params.items()}))
     ident = None
@@ -269,6 +276,8 @@ def run_fit_config(
             + ", ".join(f"{l:.3g}" for l in multi.losses)
             + f"; best start #{multi.best_index}."
         )
+    if diagnosis is not None:
+        sections["Non-finite stop"] = f"{result.message}. Stage check: {diagnosis}."
     sections["Scene"] = (
         f"net {sc.net.rows}x{sc.net.cols}, {sc.num_frames} frames "
         f"({sc.sim.num_substeps} substeps, {sc.sim.integrator}), {len(sc.cameras)} camera(s) "
@@ -291,5 +300,8 @@ def run_fit_config(
     )
     summary = report.fit_summary(result, truth, result.initial)
     summary["out_dir"] = str(out)
+    summary["status"] = result.status
+    if diagnosis is not None:
+        summary["diagnosis"] = diagnosis
     summary["total_s"] = time.perf_counter() - t0
     return summary

@@ -143,3 +143,12 @@ def test_same_config_is_bitwise_deterministic_and_not_retraced(small_scene):
     second = np.asarray(RENDER(fresh))
     np.testing.assert_array_equal(first, second)
     assert len(TRACES) == 1, f"traced {len(TRACES)} times"
+
+
+def test_diagnose_names_the_stage_that_broke(small_scene):
+    msg = pipeline.diagnose(small_scene, {"bend": float("nan")})
+    assert msg.startswith("parameters: bend")
+    # far too stiff for the explicit step: the physics blows up, diagnose says where
+    msg = pipeline.diagnose(small_scene, {"stretch": 1e9})
+    assert msg.startswith("physics: non-finite cloth or body state from frame "), msg
+    assert "num_substeps" in msg
