@@ -18,6 +18,10 @@ Each frame is split into `sim.num_substeps` exchanges. In each one (substep leng
 
 No control point ends a substep inside a body (only the body's velocity changes in step 3, not its
 position). Everything is differentiable like the two stages it joins.
+
+Only the control points collide: a sphere whose radius is below half the diagonal of a net cell
+can pass between four control points without touching any (the cloth then barely reacts and the
+body's mass has almost no effect). Use a net fine enough for the bodies it must stop.
 """
 
 from __future__ import annotations
