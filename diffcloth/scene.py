@@ -24,6 +24,8 @@ Render sections of a scene config (the physics sections are documented in docs/c
 from __future__ import annotations
 
 import dataclasses
+import math
+import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -215,6 +217,26 @@ def parse_bodies(sections: Mapping[str, Any], dtype=None) -> tuple[tuple, bool]:
     return tuple(bodies), two_way
 
 
+class SmallBodyWarning(UserWarning):
+    """A sphere body can slip between the cloth's control points."""
+
+
+def _warn_small_bodies(bodies, config: cfg.Config) -> None:
+    n = config.net
+    half_diagonal = 0.5 * math.hypot(n.width / max(n.cols - 1, 1), n.height / max(n.rows - 1, 1))
+    for i, b in enumerate(bodies):
+        r = float(b.radius)
+        if b.shape == "sphere" and r < half_diagonal:
+            warnings.warn(
+                f"[[bodies]] #{i}: sphere radius {r:.3g} m is below half a net cell's diagonal "
+                f"({half_diagonal:.3g} m): only control points collide, so the ball can pass "
+                "between four of them and barely move the cloth; use a finer [net] or a larger "
+                "ball",
+                SmallBodyWarning,
+                stacklevel=3,
+            )
+
+
 def build_scene(
     config: cfg.Config, dtype=None, *, overrides: Mapping[str, Any] | None = None
 ) -> Scene:
@@ -234,6 +256,7 @@ def build_scene(
         spheres = None
     textures = render.default_textures(dtype=dtype) if rc.textures == "default" else None
     bodies, two_way = parse_bodies(sections, dtype)
+    _warn_small_bodies(bodies, config)
     return Scene(
         net=phys.net,
         sim=phys.sim,

@@ -118,7 +118,7 @@ offset = -0.2
 
 [[bodies]]
 shape = "sphere"
-radius = 0.06
+radius = 0.08
 mass = 0.1
 position = [0.0, 0.3, 0.4]
 velocity = [0.0, 0.0, -3.0]

@@ -18,7 +18,7 @@ BALL_SCENE = {
     "sim": {"dt": 1.0 / 60.0, "num_frames": 6, "num_substeps": 8},
     "planes": [{"normal": [0.0, 1.0, 0.0], "offset": -0.3}],
     "bodies": [{
-        "shape": "sphere", "radius": 0.08, "mass": 0.2, "position": [0.0, -0.2, 0.25],
+        "shape": "sphere", "radius": 0.11, "mass": 0.2, "position": [0.0, -0.2, 0.25],
         "velocity": [0.0, -1.0, -3.0], "restitution": 0.6,
     }],
     "render": {"width": 20, "height": 20, "level": 2, "flip": False},
@@ -93,3 +93,9 @@ def test_fit_config_checks_body_truth_ranges():
         parse_fit({"fit": fit, "truth": {"body_restitution": 1.5}})
     with pytest.raises(cfg.ConfigError, match=r"body_mass = 0.0 .* allowed \(0, inf\) kg"):
         parse_fit({"fit": fit, "truth": {"body_mass": 0.0}})
+
+
+def test_a_ball_smaller_than_a_net_cell_warns():
+    small = dict(BALL_SCENE, bodies=[dict(BALL_SCENE["bodies"][0], radius=0.05)])
+    with pytest.warns(scene.SmallBodyWarning, match="half a net cell's diagonal"):
+        scene.build_scene(cfg.parse_config(small))
