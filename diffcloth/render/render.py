@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import safe_normalize
+from diffcloth._math import safe_norm, safe_normalize
 from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
@@ -70,7 +70,7 @@ def _sphere_layer(camera: Camera, spheres: Sphere, lights: Lights, appearance: A
         t, hit, _ = ray_sphere(origins, dirs, c, radius)
         t_close = -jnp.sum((origins - c) * dirs, axis=-1)
         closest = origins + t_close[..., None] * dirs
-        dist = jnp.linalg.norm(closest - c, axis=-1)
+        dist = safe_norm(closest - c, axis=-1)  # 0 with a finite gradient for a ray through c
         footprint = jnp.maximum(spacing_o + jnp.maximum(t_close, 0.0) * spacing_d, 1e-12)
         alpha = jnp.clip((radius - dist) / footprint + 0.5, 0.0, 1.0)
         alpha = jnp.where(t_close > 0, alpha, 0.0)
