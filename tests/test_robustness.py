@@ -95,6 +95,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from diffcloth.render import camera as C
@@ -286,3 +287,193 @@ def test_row_21_empty_image_is_background_with_zero_gradients():
     assert loss == pytest.approx(float(np.mean((np.asarray(BG) - 0.5) ** 2)))
     for g in grads:
         np.testing.assert_array_equal(np.asarray(g), 0.0)
+
+
+# ----------------------------------------------------------------------------- scene-level fit
+
+TINY = {
+    "net": {
+        "rows": 4,
+        "cols": 4,
+        "width": 0.8,
+        "height": 0.8,
+        "center": [0.0, 0.75, 0.0],
+        "pinned": "top_corners",
+        "plane": "xy",
+    },
+    "material": {"stretch": 30.0, "shear": 10.0, "bend": 1e-3, "damping": 1e-4, "density": 0.3},
+    "sim": {"dt": 1.0 / 60.0, "num_frames": 1, "num_substeps": 2},
+    "render": {"width": 8, "height": 8, "level": 2, "shading": "flat"},
+    "camera": {"eye": [0.0, 0.6, 1.6], "target": [0.0, 0.5, 0.0]},
+}
+
+
+HUGE_SGD = optax.sgd(1e20)  # the gradient w.r.t. log(stretch) is about -3e-13
+
+
+def _tiny_scene():
+    from diffcloth import config, scene
+
+    return scene.build_scene(config.parse_config(TINY), dtype=jnp.float64)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    import diffcloth as dc
+
+    sc = _tiny_scene()
+    video = np.asarray(dc.fit.make_targets(sc, {}))  # truth: the scene's own stretch (30)
+    return sc, video
+
+
+def test_row_26_scene_fit_rejects_bad_targets_before_compiling():
+    import diffcloth as dc
+
+    sc = _tiny_scene()
+    video = np.full(sc.video_shape, 0.5)
+    kw = dict(steps=1, progress=False)
+    with pytest.raises(ValueError, match=r"targets .*4 channels instead of 3"):
+        dc.fit.fit(sc, np.concatenate([video, video[..., :1]], -1), ["stretch"], **kw)
+    with pytest.raises(ValueError, match=r"targets has dtype int64"):
+        dc.fit.fit(sc, (video * 255).astype(np.int64), ["stretch"], **kw)
+    with pytest.raises(ValueError, match=r"targets .*divide 0..255"):
+        dc.fit.fit(sc, video * 255.0, ["stretch"], **kw)
+    with pytest.raises(ValueError, match=r"targets has shape \(1, 1, 8, 4, 3\)"):
+        dc.fit.fit(sc, video[..., :4, :], ["stretch"], **kw)
+    bad = video.copy()
+    bad[0, 0, 2, 3, 1] = np.inf
+    with pytest.raises(ValueError, match=r"targets .*NaN or inf"):
+        dc.fit.fit(sc, bad, ["stretch"], **kw)
+
+
+@pytest.mark.slow  # ~15-30 s: compiles the whole pipeline's gradient
+def test_row_28_scene_fit_stops_on_nan_mid_fit_deterministically_without_retrace(tiny):
+    """A huge SGD learning rate sends log(stretch) up by ~1e7 in one step: stretch = inf, the
+    physics turns NaN at step 1. The scene-level fit stops there with the step and the last finite
+    parameters. Also rows 26 (uint8 targets = float targets / 255), 32 (a fresh, equal scene
+    reuses the compiled step) and 34 (bitwise-equal losses and gradients)."""
+    import diffcloth as dc
+    from diffcloth.fit import loop
+
+    sc, video = tiny
+    kw = dict(init={"stretch": 3.0}, optimizer=HUGE_SGD, steps=5, progress=False, patience=None)
+    first = dc.fit.fit(sc, video, ["stretch"], **kw)
+    assert first.status == "nonfinite" and not first.ok
+    assert first.message.startswith("non-finite loss/grad at step 1 ")
+    assert "last finite params saved to FitResult.last_finite" in first.message
+    assert first.iterations == 1
+    assert float(first.last_finite["stretch"]) == pytest.approx(3.0)
+    assert first.history.grad_norm["stretch"][0] > 0
+    assert not np.isfinite(first.history.grad_norm["stretch"][1])
+    assert all(np.isfinite(float(v)) for v in first.params.values())
+
+    def same(a, b):  # bitwise, NaN in the same place
+        assert a.message == b.message
+        np.testing.assert_array_equal(a.history.loss, b.history.loss)
+        np.testing.assert_array_equal(
+            a.history.grad_norm["stretch"], b.history.grad_norm["stretch"]
+        )
+        np.testing.assert_array_equal(a.history.params["stretch"], b.history.params["stretch"])
+
+    compiled = loop._step._cache_size()
+    same(first, dc.fit.fit(_tiny_scene(), video.copy(), ["stretch"], **kw))
+    u8 = np.round(np.clip(video, 0, 1) * 255).astype(np.uint8)
+    as_float = u8.astype(np.float32) / 255  # the documented uint8 rule (validate_targets)
+    same(dc.fit.fit(sc, u8, ["stretch"], **kw), dc.fit.fit(sc, as_float, ["stretch"], **kw))
+    assert loop._step._cache_size() == compiled, "an equal scene or new targets retraced the step"
+
+
+# ----------------------------------------------------------------------------- fit_params path
+
+
+def _image_loss(p, target):
+    from diffcloth.fit import image_loss
+
+    img = jnp.broadcast_to(p["level"], (4, 4, 3))
+    return image_loss(img, target)
+
+
+def test_row_26_fit_params_targets_wrong_shape_dtype_or_nan():
+    from diffcloth.fit import fit_params, image_loss
+
+    kw = dict(steps=3, learning_rate=0.1, progress=False)
+    init = {"level": 0.3}
+    with pytest.raises(ValueError, match=r"pred shape \(4, 4, 3\) != target shape \(4, 4, 4\)"):
+        fit_params(_image_loss, init, {"level": "positive"}, loss_args=(jnp.ones((4, 4, 4)),), **kw)
+    # uint8 targets follow validate_targets' rule (/ 255), they are not compared as 0..255
+    u8 = np.full((4, 4, 3), 51, np.uint8)
+    assert float(image_loss(jnp.full((4, 4, 3), 0.2), u8)) == pytest.approx(0.0, abs=1e-12)
+    r = fit_params(_image_loss, init, {"level": "positive"}, loss_args=(jnp.asarray(u8),), **kw)
+    assert r.status == "max_steps" and float(r.params["level"]) < 0.3  # moves toward 0.2
+    with pytest.raises(ValueError, match=r"target dtype int32.*uint8"):
+        image_loss(jnp.zeros((4, 4, 3)), np.zeros((4, 4, 3), np.int32))
+    # NaN pixels inside a jitted loss cannot raise: the fit stops at step 0, flagged
+    nan_target = jnp.full((4, 4, 3), 0.2).at[1, 2, 0].set(jnp.nan)
+    r = fit_params(_image_loss, init, {"level": "positive"}, loss_args=(nan_target,), **kw)
+    assert r.status == "nonfinite" and r.message.startswith("non-finite loss/grad at step 0")
+    assert float(r.last_finite["level"]) == pytest.approx(0.3)
+
+
+# ----------------------------------------------------------------------------- batches
+
+
+def _drop(k, args):
+    """A 2 x 2 net falling under gravity with springs of stiffness k (a huge k diverges)."""
+    import dataclasses
+
+    from diffcloth import physics
+
+    net, sim, state = args
+    mat = dataclasses.replace(physics.make_material(dtype=jnp.float64), stretch=k, shear=k)
+    x = physics.rollout(net, sim, mat, state, num_frames=1).x
+    return jnp.sum(x[-1, :, :, 1])
+
+
+@jax.jit
+def _drop_batch(ks, args):
+    from diffcloth import batch
+
+    return batch.vmap_batched(lambda p, a: jax.value_and_grad(_drop)(p["k"], a), {"k": ks}, args)
+
+
+def test_row_30_one_diverging_element_keeps_others_and_their_gradients():
+    from diffcloth import physics
+
+    net = physics.grid_net(2, 2, (0.3, 0.3), pinned=[(0, 0)], dtype=jnp.float64)
+    sim = physics.make_sim(1.0 / 30.0, num_substeps=3, dtype=jnp.float64)
+    args = (net, sim, physics.rest_state(net))
+    # the middle element blows up (an explicit step far too stiff), the others are unaffected
+    (vals, grads), ok = _drop_batch(jnp.asarray([5.0, 1e200, 20.0]), args)
+    (ref_vals, ref_grads), ref_ok = _drop_batch(jnp.asarray([5.0, 6.0, 20.0]), args)
+    np.testing.assert_array_equal(np.asarray(ok), [True, False, True])
+    assert bool(ref_ok.all()) and not np.isfinite(float(vals[1]) + float(grads[1]))
+    for i in (0, 2):
+        assert float(vals[i]) == float(ref_vals[i]) and float(grads[i]) == float(ref_grads[i])
+        assert np.isfinite(float(grads[i])) and float(grads[i]) != 0.0
+
+
+def test_row_31_mismatched_batch_sizes_in_multistart_and_sharding():
+    from diffcloth import batch
+    from diffcloth.fit import fit_multistart
+
+    loss = lambda p: (p["a"] - 1.0) ** 2 + (p["b"] - 2.0) ** 2
+    with pytest.raises(ValueError, match=r"leading sizes \{'a': 3, 'b': 2\}"):
+        fit_multistart(loss, {"a": jnp.ones(3), "b": jnp.ones(2)}, steps=1, progress=False)
+    with pytest.raises(
+        ValueError, match=r"inits\[1\]\['a'\] has shape \(2,\), inits\[0\] has \(\)"
+    ):
+        fit_multistart(loss, [{"a": 1.0, "b": 1.0}, {"a": [1.0, 2.0], "b": 1.0}], steps=1)
+    with pytest.raises(ValueError, match=r"\['a'\]: 3, \['b'\]: 2"):
+        batch.vmap_batched(loss, {"a": jnp.ones(3), "b": jnp.ones(2)})
+    with pytest.raises(ValueError, match=r"\['a'\]: 4, \['b'\]: 2"):
+        batch.shard_batch({"a": jnp.ones(4), "b": jnp.ones(2)}, batch.make_mesh(1))
+
+
+def test_row_32_unhashable_static_config_is_a_clear_error():
+    import dataclasses
+
+    from diffcloth import pipeline
+
+    sc = dataclasses.replace(_tiny_scene(), level=[2])  # a list where an int belongs
+    with pytest.raises((TypeError, ValueError), match="hash|level"):
+        jax.jit(pipeline.simulate_and_render)(sc)

@@ -80,12 +80,30 @@ def _expand_mask(mask, image):
         ) from e
 
 
+_INT_SCALE = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}
+
+
+def _target_as(target, dtype):
+    """Target images in the rendered float dtype, with the rule of `validate_targets`: uint8 / 255,
+    uint16 / 65535, bool 0/1 (also under jit: the rule depends on the dtype only). Other integer
+    dtypes raise instead of being compared as 0..255 values."""
+    target = jnp.asarray(target)
+    if target.dtype in _INT_SCALE:
+        return target.astype(dtype) / _INT_SCALE[target.dtype]
+    if not (target.dtype == jnp.bool_ or jnp.issubdtype(target.dtype, jnp.floating)):
+        raise ValueError(
+            f"target dtype {target.dtype} is not supported; expected float in [0, 1], uint8 "
+            "(divided by 255) or uint16 (divided by 65535)"
+        )
+    return target.astype(dtype)
+
+
 def image_loss(pred, target, *, kind: str = "l2", mask=None):
     """Mean error per image over (H, W, C); with a mask, the mask-weighted mean.
 
     Args:
       pred: rendered images (..., H, W, C); differentiable.
-      target: target images, same shape.
+      target: target images, same shape; float, or uint8/uint16 (divided by 255/65535).
       kind: "l2" (squared error), "l1" (absolute) or "charbonnier" (smooth L1).
       mask: optional weights (..., H, W), (..., H, W, 1) or image-shaped, >= 0. An all-zero mask
         gives loss 0 (not NaN).
@@ -93,7 +111,7 @@ def image_loss(pred, target, *, kind: str = "l2", mask=None):
       Loss per image, shape `...` (a scalar for one image).
     """
     pred = jnp.asarray(pred)
-    target = jnp.asarray(target, dtype=pred.dtype)
+    target = _target_as(target, pred.dtype)
     if pred.shape != target.shape:
         raise ValueError(f"pred shape {pred.shape} != target shape {target.shape}")
     if pred.ndim < 3:
@@ -174,7 +192,7 @@ def pyramid_loss(
     if num_levels < 1:
         raise ValueError(f"num_levels={num_levels} must be >= 1")
     pred = jnp.asarray(pred)
-    target = jnp.asarray(target, dtype=pred.dtype)
+    target = _target_as(target, pred.dtype)
     if pred.shape != target.shape:
         raise ValueError(f"pred shape {pred.shape} != target shape {target.shape}")
     # The blur is linear, so the pyramid of the difference equals the difference of the pyramids,
