@@ -83,13 +83,19 @@ Row -> existing tests, written `row  <file>::<name>` for tests/test_<file>.py::t
   35  fit_losses::gradients_match_finite_differences
   35  pipeline::whole_pipeline_gradient_matches_finite_differences
 
+New tests below are named test_row_NN_<what>; the scene-level NaN-mid-fit test (row 28, also
+26/32/34 through the whole pipeline) and the x64-off subprocess (row 33) are marked slow.
+
 Not covered: row 29's truncated backpropagation (no truncation option exists; checkpointed and
 plain gradients are compared instead). Row 33's "time as i*dt" is by construction
 (physics/integrate.py computes t = s * h per substep), not tested separately.
 """
 
 import ast
+import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -260,17 +266,22 @@ def test_row_19_camera_inside_cloth_or_sphere_and_triangles_behind(eye, target, 
 
 
 def test_row_19_camera_aimed_at_sphere_centre_has_finite_gradient():
-    """The middle pixel's ray passes exactly through the centre (distance 0): the sphere layer's
-    coverage used |closest - centre| via jnp.linalg.norm, whose gradient there is NaN (seen
-    without jit; XLA happened to hide it under jit). Now safe_norm."""
+    """The middle pixel's ray passes exactly through the centre (distance 0)."""
     centre = jnp.zeros(3)
     img, _, (_, g_c, g_r) = _check_frame(flat_net(), centre, 0.5, (0.0, 0.0, 3.0), centre)
     assert img[SIZE // 2, SIZE // 2, 3] == 1.0
     assert float(jnp.abs(g_c).sum()) > 0 and float(g_r) != 0.0
+
+
+@pytest.mark.slow  # eager on purpose: ~10 s of per-op dispatch
+def test_row_19_sphere_coverage_gradient_through_the_centre_eagerly():
+    """The sphere layer's coverage used |closest - centre| via jnp.linalg.norm, whose gradient is
+    NaN at distance 0 (seen without jit; XLA happened to hide it under jit). Now safe_norm."""
     lights, app = PARTS
+    centre = jnp.zeros(3)
     cam = make_camera((0.0, 0.0, 3.0), centre)
 
-    def coverage(c, r):  # eager on purpose
+    def coverage(c, r):
         return jnp.sum(_sphere_layer(cam, Sphere(c, r), lights, app)[0])
 
     g_c, g_r = jax.grad(coverage, argnums=(0, 1))(centre, jnp.asarray(0.5))
@@ -287,6 +298,25 @@ def test_row_21_empty_image_is_background_with_zero_gradients():
     assert loss == pytest.approx(float(np.mean((np.asarray(BG) - 0.5) ** 2)))
     for g in grads:
         np.testing.assert_array_equal(np.asarray(g), 0.0)
+
+
+def test_row_32_34_fresh_equal_inputs_no_retrace_and_bitwise_equal_image_and_gradients():
+    lights, app = PARTS
+    c, r = jnp.asarray([0.3, 0.2, 0.0]), jnp.asarray(0.4, jnp.float64)  # strong types
+    first = (FRAME(flat_net(), c, r, make_camera(EYE), lights, app),) + tuple(
+        LOSS_GRAD(flat_net(), c, r, make_camera(EYE), lights, app)
+    )
+    sizes = FRAME._cache_size(), LOSS_GRAD._cache_size()
+    fresh_lights, fresh_app = make_parts(jnp.float64)  # new but equal pytrees
+    second = (FRAME(flat_net(), c + 0.0, r, make_camera(EYE), fresh_lights, fresh_app),) + tuple(
+        LOSS_GRAD(flat_net(), c + 0.0, r, make_camera(EYE), fresh_lights, fresh_app)
+    )
+    assert (FRAME._cache_size(), LOSS_GRAD._cache_size()) == sizes, "equal inputs retraced"
+    for a, b in zip(
+        jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(second), strict=True
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert float(jnp.abs(first[2][0]).sum()) > 0  # a real gradient, not a trivially equal zero
 
 
 # ----------------------------------------------------------------------------- scene-level fit
@@ -424,7 +454,8 @@ def _drop(k, args):
     from diffcloth import physics
 
     net, sim, state = args
-    mat = dataclasses.replace(physics.make_material(dtype=jnp.float64), stretch=k, shear=k)
+    mat = physics.make_material(dtype=net.rest.dtype)
+    mat = dataclasses.replace(mat, stretch=k, shear=k)
     x = physics.rollout(net, sim, mat, state, num_frames=1).x
     return jnp.sum(x[-1, :, :, 1])
 
@@ -436,12 +467,16 @@ def _drop_batch(ks, args):
     return batch.vmap_batched(lambda p, a: jax.value_and_grad(_drop)(p["k"], a), {"k": ks}, args)
 
 
-def test_row_30_one_diverging_element_keeps_others_and_their_gradients():
+def drop_args(dtype=None):
     from diffcloth import physics
 
-    net = physics.grid_net(2, 2, (0.3, 0.3), pinned=[(0, 0)], dtype=jnp.float64)
-    sim = physics.make_sim(1.0 / 30.0, num_substeps=3, dtype=jnp.float64)
-    args = (net, sim, physics.rest_state(net))
+    net = physics.grid_net(2, 2, (0.3, 0.3), pinned=[(0, 0)], dtype=dtype)
+    sim = physics.make_sim(1.0 / 30.0, num_substeps=3, dtype=dtype)
+    return net, sim, physics.rest_state(net)
+
+
+def test_row_30_one_diverging_element_keeps_others_and_their_gradients():
+    args = drop_args()
     # the middle element blows up (an explicit step far too stiff), the others are unaffected
     (vals, grads), ok = _drop_batch(jnp.asarray([5.0, 1e200, 20.0]), args)
     (ref_vals, ref_grads), ref_ok = _drop_batch(jnp.asarray([5.0, 6.0, 20.0]), args)
@@ -477,3 +512,46 @@ def test_row_32_unhashable_static_config_is_a_clear_error():
     sc = dataclasses.replace(_tiny_scene(), level=[2])  # a list where an int belongs
     with pytest.raises((TypeError, ValueError), match="hash|level"):
         jax.jit(pipeline.simulate_and_render)(sc)
+
+
+# ----------------------------------------------------------------------------- x64 off / on
+
+X32_SCRIPT = """
+import json, sys
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_numpy_rank_promotion", "raise")
+sys.path.insert(0, sys.argv[1])
+import test_robustness as T
+assert jnp.result_type(float) == jnp.float32
+lights, app = T.PARTS
+net = T.flat_net()
+img = T.FRAME(net, jnp.asarray([0.0, 0.8, 0.0], net.dtype), jnp.asarray(0.5, net.dtype),
+              T.make_camera(T.EYE), lights, app)
+(vals, grads), ok = T._drop_batch(jnp.asarray([5.0, 20.0], jnp.float32), T.drop_args())
+out = {"dtypes": sorted({str(x.dtype) for x in (net, img, vals, grads)}),
+       "img": np.asarray(img).tolist(), "vals": np.asarray(vals).tolist(),
+       "grads": np.asarray(grads).tolist()}
+print("X32" + json.dumps(out))
+"""
+
+
+@pytest.mark.slow  # a fresh process compiles the frame and a rollout gradient in float32
+def test_row_33_x64_off_runs_in_float32_and_matches_float64():
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    res = subprocess.run(
+        [sys.executable, "-c", X32_SCRIPT, str(TESTS)], env=env, capture_output=True, text=True
+    )
+    lines = [l for l in res.stdout.splitlines() if l.startswith("X32")]
+    assert lines, res.stderr[-3000:]
+    out = json.loads(lines[0][3:])
+    assert out["dtypes"] == ["float32"]
+    lights, app = PARTS
+    net = flat_net()
+    img = FRAME(net, jnp.asarray([0.0, 0.8, 0.0]), jnp.asarray(0.5), make_camera(EYE), lights, app)
+    assert np.asarray(img).dtype == np.float64
+    np.testing.assert_allclose(out["img"], np.asarray(img), atol=2e-4)
+    (vals, grads), _ = _drop_batch(jnp.asarray([5.0, 20.0]), drop_args())
+    np.testing.assert_allclose(out["vals"], np.asarray(vals), rtol=1e-5)
+    np.testing.assert_allclose(out["grads"], np.asarray(grads), rtol=1e-3)
