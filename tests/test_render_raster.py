@@ -409,3 +409,67 @@ def test_edge_neighbors():
     want = np.array([[2, 1, -1], [-1, -1, 0], [-1, -1, 0]])
     np.testing.assert_array_equal(np.asarray(R.edge_neighbors(faces)), want)
     np.testing.assert_array_equal(np.asarray(jax.jit(R.edge_neighbors)(faces)), want)
+
+
+def _brute_force_ids(pos, faces, size):
+    """numpy z-buffer over every (pixel, triangle) of the pixel camera (depth = 5 - z)."""
+    p = np.asarray(pos, np.float64)
+    ids = np.full((size, size), -1)
+    best = np.full((size, size), np.inf)
+    jj, ii = np.meshgrid(np.arange(size) - size / 2 + 0.5, size / 2 - 0.5 - np.arange(size))
+    for t, f in enumerate(np.asarray(faces)):
+        a, b, c = p[f]
+        area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+        w = [
+            ((q1[0] - jj) * (q2[1] - ii) - (q1[1] - ii) * (q2[0] - jj)) / area
+            for q1, q2 in ((b, c), (c, a), (a, b))
+        ]
+        inside = (w[0] >= 0) & (w[1] >= 0) & (w[2] >= 0)
+        depth = 5.0 - (w[0] * a[2] + w[1] * b[2] + w[2] * c[2])
+        better = inside & (depth < best)
+        best = np.where(better, depth, best)
+        ids = np.where(better, t, ids)
+    return ids
+
+
+@jax.jit
+def _ids_and_windows(positions, faces, camera):
+    """Visible triangle per pixel with the default window budgets, the windows needed, the ids
+    with a window budget of 8 (drops windows) and which triangles are tested directly."""
+    s = R._setup(positions, faces, camera, False)
+    ids = R._visibility(
+        s, camera, 2, R.default_max_tiles(faces.shape[0], camera.width, camera.height)
+    )
+    direct = R._tile_counts(s, 1)[1] <= R.DIRECT_PIXELS
+    need = R.required_tiles(positions, faces, camera)
+    return ids.reshape(camera.height, camera.width), need, R._visibility(s, camera, 2, 8), direct
+
+
+@pytest.mark.parametrize("big", [False, True])
+def test_visibility_of_mixed_triangle_sizes_matches_brute_force(big):
+    """128 x 128 pixels. Sub-pixel triangles (tested directly) and larger ones (windows): without
+    the two big triangles the windows fit in the smallest budget, with them (behind, covering
+    most of the screen) the max_tiles pass runs. A window budget of 8 drops windows, so there
+    only the pixels the direct triangles win must agree."""
+    size = 128
+    rng = np.random.default_rng(3)
+    n = 40
+    centres = rng.uniform(-0.45 * size, 0.45 * size, (n, 2))
+    scale = np.concatenate([rng.uniform(1.2, 2.2, n - 10), rng.uniform(2, 6, 8), [size, size]])
+    scale = scale if big else np.minimum(scale, 3.0)
+    corners = centres[:, None] + scale[:, None, None] * rng.uniform(-1, 1, (n, 3, 2))
+    z = rng.uniform(-1, 1, (n, 3, 1)) - 2.0 * (scale[:, None, None] > 10)  # big ones behind
+    pos = jnp.asarray(np.concatenate([corners, z], -1).reshape(-1, 3))
+    faces = jnp.arange(3 * n).reshape(n, 3)
+    cam = pixel_camera(size)
+    got, need, dropped, direct = map(np.asarray, _ids_and_windows(pos, faces, cam))
+    budgets = R.window_budgets(size, size, R.default_max_tiles(n, size, size))
+    assert len(budgets) == 3 and (need <= budgets[0]) != big and (need > budgets[-2]) == big
+    want = _brute_force_ids(pos, faces, size)
+    assert len(np.unique(want)) > 20
+    np.testing.assert_array_equal(got, want)
+    # dropping windows only removes candidates: pixels won by a direct triangle stay
+    won = np.isin(want, np.nonzero(direct)[0])
+    dropped = dropped.reshape(size, size)
+    assert won.sum() > 3 and np.any(dropped != want)
+    np.testing.assert_array_equal(dropped[won], want[won])

@@ -12,15 +12,18 @@ Pipeline (everything pure JAX; jit, vmap and grad work; no Python loops over pix
    plane (pixels whose interpolated view depth is < near or > far are rejected) and nothing behind
    the camera shows. Zero-area / edge-on triangles (|det| tiny relative to the vertex scale) are
    skipped before anything is divided.
-2. Visibility (no gradient): every triangle gets tile_size x tile_size pixel windows covering its
-   clamped screen bounding box (one window for the typical sub-pixel cloth triangle; a
-   full-screen triangle gets (W/T)(H/T) of them). Windows are allocated from a static budget
-   `max_tiles` (default: triangles + 2 full screens of windows) by a prefix sum; each window
-   evaluates its T^2 pixels, `.at[].min` scatters depths into a z-buffer, and a second `.at[].max`
-   scatter of the triangle id among candidates that equal the z-buffer depth resolves the id (ties:
-   larger id). The bounding box of a triangle crossing the near plane is that of its part in
-   front of it (vertices and edge/near-plane intersections). Windows beyond the budget are
-   dropped (`required_tiles` tells how many a scene needs).
+2. Visibility (no gradient): a triangle whose clamped screen bounding box holds at most
+   DIRECT_PIXELS (2) pixel centres (nearly every cloth triangle: sub-pixel at 256 x 256) is
+   tested at those pixels directly, per triangle, without any allocation. Larger triangles get
+   tile_size x tile_size pixel windows covering their box, allocated by a prefix sum from a
+   static budget: the smallest of `window_budgets` (1/8 or 1 screen of windows, else
+   `max_tiles`, default: triangles + 2 full screens of windows) that holds the frame's
+   windows (lax.switch; under vmap every budget runs). `.at[].min` scatters the candidates'
+   depths into a z-buffer, and a second
+   `.at[].max` scatter of the triangle id among candidates that equal the z-buffer depth resolves
+   the id (ties: larger id). The bounding box of a triangle crossing the near plane is that of
+   its part in front of it (vertices and edge/near-plane intersections). Windows beyond the
+   budget are dropped (`required_tiles` tells how many a scene needs).
 3. Differentiable resolve: with the visible triangle per pixel fixed, barycentrics and depth are
    recomputed from the positions, so attributes interpolate with gradients w.r.t. attributes and
    vertex positions (interior gradients).
@@ -36,9 +39,12 @@ Pipeline (everything pure JAX; jit, vmap and grad work; no Python loops over pix
    get no gradient there (as in nvdiffrast).
 
 Design choices, measured (benchmarks/render.py: the seed's 11,830-vertex / 23,220-triangle
-cloth, float32, shared 2-core CPU under heavy load, so upper bounds): tile_size 2 (most cloth
-triangles cover 0-2 pixel centres at 256 x 256; 4 evaluates 4x more candidates for the same
-result); silhouette_walk 1 (finds 97% of the cloth-boundary crossings, 2 finds 100% at ~25% more
+cloth, float32, shared 2-core CPU under heavy load, so upper bounds): direct tests for boxes
+of <= 2 pixel centres (19,887 of the 23,220 triangles of the draped seed cloth of
+benchmarks/peers/mitsuba_render.py at 256 x 256 hold 0-2; the rest need
+1,981 2 x 2 windows, against 19,866 windows = 79,464 candidates when every triangle took
+windows, evaluated from a 55,988-window budget): visibility 3.6 -> 1.5 ms;
+silhouette_walk 1 (finds 97% of the cloth-boundary crossings, 2 finds 100% at ~25% more
 resolve time). The silhouette search runs only on pairs whose front triangle has a silhouette
 edge within reach (1,616 of 131,072 pairs at 256 x 256, 4,249 of 524,288 at 512 x 512),
 compacted by a log-depth scan into a static list (`silhouette_budget`, H W / 16) with a
@@ -280,66 +286,132 @@ def _tile_counts(s: _Setup, tile: int):
     return nx, ntiles
 
 
+DIRECT_PIXELS = 2  # triangles with at most this many pixel centres in their box get no windows
+
+
 def default_max_tiles(num_triangles: int, width: int, height: int, tile_size: int = 2) -> int:
     """Default window budget: one per triangle plus two full screens of windows."""
     return int(num_triangles + 2 * math.ceil(width / tile_size) * math.ceil(height / tile_size))
 
 
 def required_tiles(positions, faces, camera: Camera, *, tile_size: int = 2, cull_backfaces=False):
-    """Number of pixel windows a scene needs (compare with `max_tiles`)."""
+    """Number of pixel windows a scene needs (compare with `max_tiles`): windows of the triangles
+    covering more than DIRECT_PIXELS pixel centres."""
     s = _setup(positions, faces, camera, cull_backfaces)
-    return jnp.sum(_tile_counts(s, tile_size)[1])
+    direct = _tile_counts(s, 1)[1] <= DIRECT_PIXELS
+    return jnp.sum(jnp.where(direct, 0, _tile_counts(s, tile_size)[1]))
 
 
 # ----------------------------------------------------------------------------- visibility
 
 
+def _candidate_depth(E, dep, org, px, py, keep, near, far):
+    """View depth of candidate pixels (px, py) (int32) of triangles with edge rows E (..., 9),
+    vertex depths dep (..., 3) and origins org (..., 2) (shapes broadcast); +inf where rejected."""
+    dtype = E.dtype
+    fx = (px - org[..., 0].astype(jnp.int32)).astype(dtype)
+    fy = (py - org[..., 1].astype(jnp.int32)).astype(dtype)
+    e = [E[..., 3 * k] * fx + E[..., 3 * k + 1] * fy + E[..., 3 * k + 2] for k in range(3)]
+    total = e[0] + e[1] + e[2]
+    num = e[0] * dep[..., 0] + e[1] * dep[..., 1] + e[2] * dep[..., 2]
+    depth = num / jnp.where(total > 0, total, 1.0)
+    keep = keep & (e[0] >= 0) & (e[1] >= 0) & (e[2] >= 0) & (total > 0)
+    keep = keep & (depth >= near) & (depth <= far)
+    return jnp.where(keep, depth, jnp.inf)
+
+
+def _windows(ftab, itab, ends, W: int, tile: int, budget: int, near, far):
+    """Candidates of the first `budget` tile x tile windows, allocated to triangles by the prefix
+    sum `ends` of their window counts: flat depth (+inf rejected), flat pixel index and triangle
+    id. ftab (m, 14): edge rows, vertex depths, origin; itab (m, 5): bounding box, windows per
+    row."""
+    m = ftab.shape[0]
+    ntiles = ends - jnp.concatenate([jnp.zeros(1, ends.dtype), ends[:-1]])
+    owner = jnp.full((budget,), -1, jnp.int32)
+    owner = owner.at[jnp.where(ntiles > 0, ends - ntiles, budget)].max(
+        jnp.arange(m, dtype=jnp.int32), mode="drop"
+    )
+    owner = _cummax(owner)
+    slot = jnp.arange(budget, dtype=jnp.int32)
+    tri = jnp.maximum(owner, 0)
+    # one gather per table, materialized: fused into the per-pixel code it would run per pixel
+    f = _materialize(ftab[tri])[:, None, None]
+    i = _materialize(itab[tri])
+    local = slot - (ends[tri] - ntiles[tri])
+    ntx = jnp.maximum(i[:, 4], 1)
+    ox = i[:, 0] + tile * (local % ntx)
+    oy = i[:, 1] + tile * (local // ntx)
+    u = jnp.arange(tile, dtype=jnp.int32)
+    px = ox[:, None, None] + u[None, None, :]  # (S, T, T), columns vary fastest
+    py = oy[:, None, None] + u[None, :, None]
+    keep = (px <= i[:, 2, None, None]) & (py <= i[:, 3, None, None])
+    keep = keep & ((owner >= 0) & (local < ntiles[tri]))[:, None, None]
+    depth = _candidate_depth(f[..., :9], f[..., 9:12], f[..., 12:], px, py, keep, near, far)
+    pix = jnp.broadcast_to(py * W + px, keep.shape).reshape(-1)
+    tid = jnp.broadcast_to(tri[:, None, None], keep.shape).reshape(-1)
+    return depth.reshape(-1), pix, tid
+
+
+def window_budgets(width: int, height: int, max_tiles: int, tile_size: int = 2) -> tuple:
+    """Static window budgets of the visibility pass, smallest first: an eighth and one screen of
+    windows, then `max_tiles`; a frame runs the smallest that holds its windows.
+    Below 128 x 128 pixels only `max_tiles` (as cheap there, and compiled once)."""
+    screen = math.ceil(width / tile_size) * math.ceil(height / tile_size)
+    if width * height < 128 * 128:
+        return (int(max_tiles),)
+    small = [b for b in (screen // 8, screen) if b < int(max_tiles)]
+    return tuple(sorted(set(small))) + (int(max_tiles),)
+
+
 def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int):
-    """(H * W,) int32 visible triangle per pixel (-1 background). No gradient."""
+    """(H * W,) int32 visible triangle per pixel (-1 background). No gradient.
+
+    Triangles whose clamped bounding box holds at most `DIRECT_PIXELS` pixel centres (nearly all
+    of a finely tessellated cloth) are tested at those pixels directly, per triangle; the others
+    get tile x tile windows from the smallest of `window_budgets` that holds the frame's windows
+    (lax.switch; under vmap every budget runs). A z-buffer scatter-min of the candidates'
+    depths, then a scatter-max of the ids of those equal to it (ties: larger id).
+    """
     W, H = camera.width, camera.height
     m = s.edge.shape[0]
     E = jax.lax.stop_gradient(s.edge)
     dep = jax.lax.stop_gradient(s.vdepth)
-    dtype = E.dtype
     near, far = jax.lax.stop_gradient(camera.near), jax.lax.stop_gradient(camera.far)
+    nx1, n1 = _tile_counts(s, 1)
+    direct = n1 <= DIRECT_PIXELS
+    k = jnp.arange(DIRECT_PIXELS, dtype=jnp.int32)[None, :]
+    nxd = jnp.maximum(nx1, 1)[:, None]
+    dpx = s.bbox[:, 0, None] + k % nxd
+    dpy = s.bbox[:, 1, None] + k // nxd
+    col = lambda a: a[:, None]
+    d_keep = k < n1[:, None]
+    d_depth = _candidate_depth(col(E), col(dep), col(s.origin), dpx, dpy, d_keep, near, far)
+    d_pix = (dpy * W + dpx).reshape(-1)
+    d_tid = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32)[:, None], dpx.shape).reshape(-1)
+
     nx, ntiles = _tile_counts(s, tile)
-    ends = _cumsum(ntiles)
-    starts = ends - ntiles
-    tri_ids = jnp.arange(m, dtype=jnp.int32)
-    owner = jnp.full((max_tiles,), -1, jnp.int32)
-    owner = owner.at[jnp.where(ntiles > 0, starts, max_tiles)].max(tri_ids, mode="drop")
-    owner = _cummax(owner)
-    slot = jnp.arange(max_tiles, dtype=jnp.int32)
-    tri = jnp.maximum(owner, 0)
-    local = slot - starts[tri]
-    ok_slot = (owner >= 0) & (local < ntiles[tri])
-    ntx = jnp.maximum(nx[tri], 1)
-    bb = s.bbox[tri]
-    ox = bb[:, 0] + tile * (local % ntx)
-    oy = bb[:, 1] + tile * (local // ntx)
-    u = jnp.arange(tile, dtype=jnp.int32)
-    px = ox[:, None, None] + u[None, None, :]  # (S, T, T), columns vary fastest
-    py = oy[:, None, None] + u[None, :, None]
-    keep = (px <= bb[:, 2, None, None]) & (py <= bb[:, 3, None, None]) & ok_slot[:, None, None]
-    Et = E[tri]  # (S, 9)
-    dt = dep[tri]  # (S, 3)
-    org = s.origin[tri]
-    fx = (px - org[:, 0, None, None].astype(jnp.int32)).astype(dtype)
-    fy = (py - org[:, 1, None, None].astype(jnp.int32)).astype(dtype)
-    col = lambda a, j: a[:, j, None, None]
-    e = [col(Et, 3 * k) * fx + col(Et, 3 * k + 1) * fy + col(Et, 3 * k + 2) for k in range(3)]
-    total = e[0] + e[1] + e[2]
-    num = e[0] * col(dt, 0) + e[1] * col(dt, 1) + e[2] * col(dt, 2)
-    depth = num / jnp.where(total > 0, total, 1.0)
-    keep = keep & (e[0] >= 0) & (e[1] >= 0) & (e[2] >= 0) & (total > 0)
-    keep = keep & (depth >= near) & (depth <= far)
-    pix = jnp.where(keep, py * W + px, H * W).reshape(-1)
-    depth = jnp.where(keep, depth, jnp.inf).reshape(-1)
-    zbuf = jnp.full((H * W,), jnp.inf, dtype).at[pix].min(depth, mode="drop")
-    win = keep.reshape(-1) & (depth == zbuf.at[pix].get(mode="fill", fill_value=-1.0))
-    tid = jnp.broadcast_to(tri[:, None, None], keep.shape).reshape(-1)
-    ids = jnp.full((H * W,), -1, jnp.int32).at[jnp.where(win, pix, H * W)].max(tid, mode="drop")
-    return ids
+    ends = _cumsum(jnp.where(direct, 0, ntiles))
+    ftab = _materialize(jnp.concatenate([E, dep, s.origin.astype(E.dtype)], axis=-1))
+    itab = _materialize(jnp.concatenate([s.bbox, nx[:, None]], axis=-1))
+
+    def pass_(budget):
+        w = _windows(ftab, itab, ends, W, tile, budget, near, far)
+        # the candidates' depths computed once (materialized), so that the edge functions are
+        # not re-evaluated inside every consumer fusion
+        depth = _materialize(jnp.concatenate([d_depth.reshape(-1), w[0]]))
+        pix, tid = jnp.concatenate([d_pix, w[1]]), jnp.concatenate([d_tid, w[2]])
+        keep = depth < jnp.inf
+        pix = jnp.where(keep, pix, H * W)
+        zbuf = jnp.full((H * W,), jnp.inf, depth.dtype).at[pix].min(depth, mode="drop")
+        win = keep & (depth == zbuf.at[pix].get(mode="fill", fill_value=-1.0))
+        ids = jnp.full((H * W,), -1, jnp.int32)
+        return ids.at[jnp.where(win, pix, H * W)].max(tid, mode="drop")
+
+    budgets = window_budgets(W, H, max_tiles, tile)
+    if len(budgets) == 1:
+        return pass_(budgets[0])
+    level = jnp.sum(ends[-1] > jnp.asarray(budgets[:-1]))
+    return jax.lax.switch(level, [lambda b=b: pass_(b) for b in budgets])
 
 
 # ----------------------------------------------------------------------------- resolve
