@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import safe_normalize
+from diffcloth._math import EPS, safe_normalize
 
 PARALLEL_KINDS = (
     "orthographic",
@@ -445,20 +445,27 @@ def pixel_rays(camera: Camera):
     dtype = camera.view.dtype
     ndc = pixel_centers(camera.width, camera.height, dtype)
     inv = jnp.linalg.inv(camera.projection @ camera.view)
-    ones = jnp.ones(ndc.shape[:-1] + (1,), dtype)
-    near_h = jnp.concatenate([ndc, -ones, ones], axis=-1)
-    far_h = jnp.concatenate([ndc, ones, ones], axis=-1)
-    p0 = jnp.einsum("ij,hwj->hwi", inv, near_h)
-    p1 = jnp.einsum("ij,hwj->hwi", inv, far_h)
-    p0 = p0[..., :3] / p0[..., 3:]
-    p1 = p1[..., :3] / p1[..., 3:]
-    return p0, safe_normalize(p1 - p0)
+    x, y = ndc[..., 0], ndc[..., 1]
+    # written out per component: XLA's CPU backend runs a contraction or reduction over a
+    # 4- or 3-long minor axis of a per-pixel array several times slower than the plain sums
+    base = [inv[i, 0] * x + inv[i, 1] * y + inv[i, 3] for i in range(4)]
+    near_h = [b - inv[i, 2] for i, b in enumerate(base)]
+    far_h = [b + inv[i, 2] for i, b in enumerate(base)]
+    p0 = [near_h[i] / near_h[3] for i in range(3)]
+    d = [far_h[i] / far_h[3] - p0[i] for i in range(3)]
+    sq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    ok = sq > EPS.get(jnp.dtype(dtype), 1e-12)  # as safe_normalize: +y for a zero vector
+    n = jnp.sqrt(jnp.where(ok, sq, 1.0))
+    fallback = (0.0, 1.0, 0.0)
+    d = [jnp.where(ok, jnp.where(ok, d[i], 1.0) / n, fallback[i]) for i in range(3)]
+    return jnp.stack(p0, axis=-1), jnp.stack(d, axis=-1).astype(dtype)
 
 
 def project(points, camera: Camera):
     """World points (..., 3) -> (clip (..., 4), view depth (...) = -z_view in m)."""
-    ones = jnp.ones(points.shape[:-1] + (1,), points.dtype)
-    ph = jnp.concatenate([points, ones], axis=-1)
-    view = jnp.einsum("ij,...j->...i", camera.view, ph)
-    clip = jnp.einsum("ij,...j->...i", camera.projection, view)
-    return clip, -view[..., 2]
+    V, P = camera.view, camera.projection
+    p = [points[..., j] for j in range(3)]
+    # written out per component (see pixel_rays)
+    view = [V[i, 0] * p[0] + V[i, 1] * p[1] + V[i, 2] * p[2] + V[i, 3] for i in range(4)]
+    clip = [sum(P[i, j] * view[j] for j in range(4)) for i in range(4)]
+    return jnp.stack(clip, axis=-1), -view[2]
