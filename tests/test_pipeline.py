@@ -52,7 +52,8 @@ def video_loss_and_grad():
     def loss(params, sc, target):
         return jnp.mean((pipeline.simulate_and_render(sc, params) - target) ** 2)
 
-    return jax.jit(loss), jax.jit(jax.grad(loss))
+    # one compiled program for both: the finite differences read its value (saves a compile)
+    return jax.jit(jax.value_and_grad(loss))
 
 
 def test_video_shape_and_range(small_scene):
@@ -66,16 +67,20 @@ def test_video_shape_and_range(small_scene):
 
 def test_whole_pipeline_gradient_matches_finite_differences(small_scene, video_loss_and_grad):
     """d(video loss)/d(each material parameter), AD vs central FD in float64 (log-space steps)."""
-    loss, grad = video_loss_and_grad
+    value_and_grad = video_loss_and_grad
     target = jnp.zeros(small_scene.video_shape, jnp.float64) + 0.2
     params = {n: small_scene.material.__dict__[n] for n in MATERIAL_FIELDS}
-    g = grad(params, small_scene, target)
+    _, g = value_and_grad(params, small_scene, target)
+
+    def loss(p):
+        return float(value_and_grad(p, small_scene, target)[0])
+
     for name in MATERIAL_FIELDS:
         v = float(params[name])
         h = 1e-5 * v  # small: a larger step crosses contact events (onset of sphere contact)
         up = dict(params, **{name: jnp.float64(v + h)})
         dn = dict(params, **{name: jnp.float64(v - h)})
-        fd = (float(loss(up, small_scene, target)) - float(loss(dn, small_scene, target))) / (2 * h)
+        fd = (loss(up) - loss(dn)) / (2 * h)
         ad = float(g[name])
         assert np.isfinite(ad), name
         scale = max(abs(fd), abs(ad))
@@ -83,6 +88,7 @@ def test_whole_pipeline_gradient_matches_finite_differences(small_scene, video_l
         assert abs(ad - fd) <= 0.05 * scale + 1e-9, f"{name}: AD {ad:.6g} vs FD {fd:.6g}"
 
 
+@pytest.mark.slow  # ~35 s, mostly compiling the fit's step (CI runs it: .ci/run runs -m slow too)
 def test_small_fit_recovers_bending_stiffness(small_scene):
     truth = {"bend": 2e-3}
     targets = dc.fit.make_targets(small_scene, truth)

@@ -42,9 +42,10 @@ def test_bodies_are_read_and_simulated_with_the_cloth(ball_scene):
 
 
 def test_ball_is_drawn_and_body_params_apply(ball_scene):
-    render = jax.jit(pipeline.simulate_and_render)
+    render = jax.jit(pipeline.simulate_and_render)  # one compile: same structure both times
     with_ball = np.asarray(render(ball_scene))
-    without = np.asarray(render(pipeline.dataclasses.replace(ball_scene, bodies=())))
+    away = pipeline.apply_params(ball_scene, {"body_position": [[0.0, 50.0, 0.25]]})
+    without = np.asarray(render(away))  # the ball thrown from far above the view
     assert with_ball.shape == ball_scene.video_shape
     assert np.abs(with_ball - without).max() > 0.1  # the ball shows up
     heavier = pipeline.apply_params(ball_scene, {"body_mass": 0.5, "body_restitution": [0.3]})
