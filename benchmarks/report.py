@@ -155,7 +155,9 @@ def render_section(lines) -> list[str]:
                 "diffcloth (raster, AA edges)",
                 "-",
                 dc["fwd_ms"],
+                dc["fwd_ms"],
                 dc["grad_ms"],
+                "-",
                 "-",
                 "-",
                 "-",
@@ -170,8 +172,10 @@ def render_section(lines) -> list[str]:
                 "Mitsuba 3",
                 r["spp"],
                 r["fwd_ms"],
+                r.get("fwd_moved_ms", "-"),
                 r["grad_ms"],
                 r["ratio_fwd"],
+                r.get("ratio_fwd_moved", "-"),
                 r["ratio_grad"],
                 r["mean_abs_diff"],
                 r["mean_abs_diff_interior"],
@@ -184,9 +188,11 @@ def render_section(lines) -> list[str]:
             [
                 "renderer",
                 "spp",
-                "forward (ms)",
+                "forward, same positions (ms)",
+                "forward, new positions (ms)",
                 "gradient (ms)",
-                "fwd ratio",
+                "fwd ratio (same)",
+                "fwd ratio (new)",
                 "grad ratio",
                 "mean abs diff (RGB)",
                 "interior diff",
@@ -216,8 +222,14 @@ def render_section(lines) -> list[str]:
 CAVEATS = [
     "## Caveats",
     "",
-    "- Shared, busy 2-core machine: medians of a few runs, noisy; rerun with "
-    "`python benchmarks/report.py --run` on a quiet machine before quoting.",
+    "- 2-core machine, nothing else running; medians (15 calls for the renderers, fewer for the "
+    "slow gradients), which still move by 10-20 % between runs. Rerun with "
+    "`python benchmarks/report.py --run`.",
+    "- Mitsuba's forward pass comes in two columns: with the vertex positions of the previous "
+    "call (its acceleration structure is reused: a static scene) and with new positions (set "
+    "and rebuilt before each render: what every frame of a cloth rollout or fit step needs). "
+    "diffcloth's forward pass takes the positions as an input, so both cases cost it the same. "
+    "Mitsuba's gradient always includes setting the positions.",
     "- Warp on CPU runs each kernel single-threaded and pays one Python launch per kernel (3 per "
     "substep, plus zeroing the force buffer), so small nets measure launch overhead; on a GPU "
     "(CUDA graphs) Warp would be much faster. diffcloth runs one jitted XLA program (`lax.scan`).",
@@ -252,7 +264,9 @@ def summary(phys, rend) -> list[str]:
         if r.get("bench") == "peers_render_mitsuba":
             out.append(
                 f"- Render 256 x 256 vs Mitsuba at {r['spp']} spp: diffcloth/Mitsuba = "
-                f"{_f(r['ratio_fwd'])} forward, {_f(r['ratio_grad'])} gradient; mean abs image "
+                f"{_f(r['ratio_fwd'])} forward with unchanged vertex positions, "
+                f"{_f(r.get('ratio_fwd_moved', float('nan')))} forward with new positions (each "
+                f"frame of a rollout), {_f(r['ratio_grad'])} gradient; mean abs image "
                 f"difference {_f(r['mean_abs_diff'])}."
             )
     return out
