@@ -61,3 +61,11 @@ def safe_atan2(y, x, eps: float | None = None):
     eps = _eps(x) if eps is None else eps
     ok = (x * x + y * y) > eps
     return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, x, 1.0)), 0.0)
+
+
+def materialize(x):
+    """x itself, computed once. XLA's CPU fusion otherwise inlines cheap per-triangle producers
+    into per-pixel gathers and recomputes them for every pixel (optimization_barrier is removed
+    before fusion); a scatter's result is always materialized. Differentiable."""
+    n = x.shape[0]
+    return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)

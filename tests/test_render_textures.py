@@ -60,6 +60,37 @@ def test_mip_pyramid_and_lod():
     np.testing.assert_allclose(uv_lod(uv_img / 8, jnp.ones((H, W)), tex.shape), 0.0, atol=1e-12)
 
 
+@pytest.mark.parametrize("wrap", ["repeat", ("clamp", "repeat")])
+def test_sample_mip_equals_blend_of_every_level_with_gradients(wrap):
+    """The packed two-level lookup equals sum_l max(0, 1 - |lod - l|) sample_2d(level l): values
+    and gradients w.r.t. texels and uv for lod below 0, between levels, on a level and above; the
+    gradient w.r.t. lod between levels."""
+    rng = np.random.default_rng(3)
+    pyr = T.mip_pyramid(jnp.asarray(rng.uniform(size=(16, 8, 2))))
+    uv = jnp.asarray(rng.uniform(-0.3, 1.3, size=(40, 2)))
+    lod = jnp.asarray(np.r_[-1.0, 0.0, 1.0, 2.5, 3.0, 9.0, rng.uniform(0, 3, size=34)])
+
+    def reference(pyr, uv, lod):
+        lod = jnp.clip(lod, 0.0, len(pyr) - 1.0)
+        return sum(
+            jnp.maximum(0.0, 1.0 - jnp.abs(lod - k))[..., None] * T.sample_2d(t, uv, wrap=wrap)
+            for k, t in enumerate(pyr)
+        )
+
+    np.testing.assert_allclose(sample_mip(pyr, uv, lod, wrap=wrap), reference(pyr, uv, lod),
+                               atol=1e-12)  # fmt: skip
+    w = jnp.asarray(rng.normal(size=(40, 2)))
+    loss = lambda f: jax.jit(jax.grad(lambda *a: jnp.sum(w * f(*a)), argnums=(0, 1, 2)))
+    got = loss(lambda *a: T.sample_mip(*a, wrap=wrap))(pyr, uv, lod)
+    want = loss(reference)(pyr, uv, lod)
+    for g, r in zip(jax.tree.leaves(got[:2]), jax.tree.leaves(want[:2]), strict=True):
+        np.testing.assert_allclose(g, r, atol=1e-10)
+    # d/dlod: equal away from the kinks at whole levels and the clip ends (any subgradient there)
+    smooth = np.asarray((lod > 0) & (lod < len(pyr) - 1) & (lod != jnp.round(lod)))
+    assert smooth.sum() > 30
+    np.testing.assert_allclose(got[2][smooth], want[2][smooth], atol=1e-10)
+
+
 def test_mip_reduces_aliasing_of_minified_checker():
     tex = T.checker(64, 32, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
     pyr = T.mip_pyramid(tex)

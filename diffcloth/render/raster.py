@@ -64,7 +64,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import safe_div
+from diffcloth._math import materialize, safe_div
 from diffcloth.render.camera import Camera, project
 
 BACKGROUND_DEPTH = (
@@ -120,14 +120,6 @@ def _cumsum(x):
 
 def _cummax(x):
     return jax.lax.associative_scan(jnp.maximum, x)
-
-
-def _materialize(x):
-    """x itself, computed once. XLA's CPU fusion otherwise inlines cheap per-triangle producers
-    into per-pixel gathers and recomputes them for every pixel (optimization_barrier is removed
-    before fusion); a scatter's result is always materialized. Differentiable."""
-    n = x.shape[0]
-    return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)
 
 
 def _compact(flags, size: int):
@@ -335,8 +327,8 @@ def _windows(ftab, itab, ends, W: int, tile: int, budget: int, near, far):
     slot = jnp.arange(budget, dtype=jnp.int32)
     tri = jnp.maximum(owner, 0)
     # one gather per table, materialized: fused into the per-pixel code it would run per pixel
-    f = _materialize(ftab[tri])[:, None, None]
-    i = _materialize(itab[tri])
+    f = materialize(ftab[tri])[:, None, None]
+    i = materialize(itab[tri])
     local = slot - (ends[tri] - ntiles[tri])
     ntx = jnp.maximum(i[:, 4], 1)
     ox = i[:, 0] + tile * (local % ntx)
@@ -391,14 +383,14 @@ def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int):
 
     nx, ntiles = _tile_counts(s, tile)
     ends = _cumsum(jnp.where(direct, 0, ntiles))
-    ftab = _materialize(jnp.concatenate([E, dep, s.origin.astype(E.dtype)], axis=-1))
-    itab = _materialize(jnp.concatenate([s.bbox, nx[:, None]], axis=-1))
+    ftab = materialize(jnp.concatenate([E, dep, s.origin.astype(E.dtype)], axis=-1))
+    itab = materialize(jnp.concatenate([s.bbox, nx[:, None]], axis=-1))
 
     def pass_(budget):
         w = _windows(ftab, itab, ends, W, tile, budget, near, far)
         # the candidates' depths computed once (materialized), so that the edge functions are
         # not re-evaluated inside every consumer fusion
-        depth = _materialize(jnp.concatenate([d_depth.reshape(-1), w[0]]))
+        depth = materialize(jnp.concatenate([d_depth.reshape(-1), w[0]]))
         pix, tid = jnp.concatenate([d_pix, w[1]]), jnp.concatenate([d_tid, w[2]])
         keep = depth < jnp.inf
         pix = jnp.where(keep, pix, H * W)
@@ -448,7 +440,7 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
     """
     m = s.edge.shape[0]
     dtype = s.edge.dtype
-    table = _materialize(jax.lax.stop_gradient(jnp.concatenate([s.edge, s.origin], axis=-1)))
+    table = materialize(jax.lax.stop_gradient(jnp.concatenate([s.edge, s.origin], axis=-1)))
     one = jnp.ones((), dtype)
     ux = jnp.where(vertical, 0.0, one)
     uy = jnp.where(vertical, one, 0.0)
@@ -514,8 +506,8 @@ def _pairs(s: _Setup, tri, ok, depth, neighbors, walk: int):
     the front triangle, search flag and "this pixel is the nearer one" per pair."""
     H, W = tri.shape
     silm, reach = _reach(s, neighbors, walk)
-    sil = _materialize(silm.reshape(-1))
-    reach = _materialize(reach)
+    sil = materialize(silm.reshape(-1))
+    reach = materialize(reach)
     nbr = jnp.maximum(neighbors, 0).reshape(-1)
     ids = jnp.where(ok, tri, -1)
     big = jnp.asarray(BACKGROUND_DEPTH, depth.dtype)
@@ -672,7 +664,7 @@ def rasterize(
         neighbors = edge_neighbors(faces)
     if max_tiles is None:
         max_tiles = default_max_tiles(faces.shape[0], camera.width, camera.height, tile_size)
-    s = _Setup(*map(_materialize, _setup(positions, faces, camera, cull_backfaces, triangle_mask)))
+    s = _Setup(*map(materialize, _setup(positions, faces, camera, cull_backfaces, triangle_mask)))
     ids = _visibility(s, camera, tile_size, max_tiles)
     if silhouette_budget is None:
         silhouette_budget = default_silhouette_budget(camera.width, camera.height)
@@ -751,7 +743,7 @@ def antialias(color, buffer):
     )
     v_a, v_b = weights(ids[:-1], ids[1:], depth[:-1], depth[1:], cross[:-1, :, 2], cross[1:, :, 3])
     # weight of each pixel's move toward its right / left / lower / upper neighbour's colour
-    w = _materialize(
+    w = materialize(
         jnp.stack(
             [
                 jnp.pad(h_a, ((0, 0), (0, 1))),

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import safe_norm, safe_normalize
+from diffcloth._math import materialize, safe_norm, safe_normalize
 from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
@@ -233,7 +233,10 @@ def render(
         refraction=refraction,
     )
     if antialiased:
-        img = antialias(img, buf)
+        # computed once: fused into antialias's shifted neighbour reads, the shading (texture
+        # gathers, bump maps) would be recomputed for each neighbour and channel (minnaert
+        # forward 265 -> see benchmarks/shading.py)
+        img = antialias(materialize(img), buf)
     if spheres is not None and draw_spheres:
         sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)

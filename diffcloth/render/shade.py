@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import EPS, safe_div, safe_sqrt
+from diffcloth._math import EPS, materialize, safe_div, safe_sqrt
 from diffcloth.render.lights import Appearance, Lights, light_vectors
 from diffcloth.render.rays import ray_sphere
 from diffcloth.render.textures import (
@@ -382,14 +382,16 @@ def shade(
         if tex.color is None:
             return jnp.ones((*mask.shape, 4), dtype)
         lod = uv_lod(uv, mask, tex.color[0].shape)
-        return sample_mip(tex.color, uv, lod, wrap="repeat")
+        # materialized: XLA's CPU fusion would otherwise redo every lookup per consumer/channel
+        return materialize(sample_mip(tex.color, uv, lod, wrap="repeat"))
 
     def bumped():
         if tex.bump is None:
             return n
         lod = uv_lod(uv, mask, tex.bump[0].shape)
-        slopes = sample_mip(tex.bump, uv, lod, wrap="repeat")
-        return bump_normal(g.normal, g.tangent, g.bitangent, slopes, appearance.bump_strength)
+        slopes = materialize(sample_mip(tex.bump, uv, lod, wrap="repeat"))
+        nb = bump_normal(g.normal, g.tangent, g.bitangent, slopes, appearance.bump_strength)
+        return materialize(nb)  # read by several lighting terms: computed once
 
     env = tex.env if tex.env is not None else _default_sky(jnp.dtype(dtype).name)
     ambient = _bc(appearance.ambient * lights.ambient, p)

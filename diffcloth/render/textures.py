@@ -50,11 +50,22 @@ def sample_2d(texture, uv, *, wrap="repeat"):
     >>> float(sample_2d(tex, jnp.array([0.5, 0.5]))[0])
     1.5
     """
+    wrap_u, wrap_v = _wraps(wrap)
+    h, w, _ = texture.shape
+    return _bilinear(lambda yi, xi: texture[yi, xi], h, w, uv, wrap_u, wrap_v)
+
+
+def _wraps(wrap):
     wrap_u, wrap_v = (wrap, wrap) if isinstance(wrap, str) else tuple(wrap)
     for w in (wrap_u, wrap_v):
         if w not in WRAPS:
             raise ValueError(f"wrap must be one of {WRAPS}, got {w!r}")
-    h, w, _ = texture.shape
+    return wrap_u, wrap_v
+
+
+def _bilinear(fetch, h, w, uv, wrap_u, wrap_v):
+    """Bilinear filter of texels fetch(row, col) -> (..., c) over an h x w grid (ints, or per-lookup
+    int arrays for mip levels chosen per pixel)."""
     x = uv[..., 0] * w - 0.5
     y = uv[..., 1] * h - 0.5
     if wrap_u == "clamp":
@@ -69,8 +80,8 @@ def sample_2d(texture, uv, *, wrap="repeat"):
     y0 = y0f.astype(jnp.int32)
     xa, xb = _wrap_index(x0, w, wrap_u), _wrap_index(x0 + 1, w, wrap_u)
     ya, yb = _wrap_index(y0, h, wrap_v), _wrap_index(y0 + 1, h, wrap_v)
-    top = texture[ya, xa] * (1 - fx) + texture[ya, xb] * fx
-    bottom = texture[yb, xa] * (1 - fx) + texture[yb, xb] * fx
+    top = fetch(ya, xa) * (1 - fx) + fetch(ya, xb) * fx
+    bottom = fetch(yb, xa) * (1 - fx) + fetch(yb, xb) * fx
     return top * (1 - fy) + bottom * fy
 
 
@@ -105,12 +116,29 @@ def sample_mip(pyramid, uv, lod, *, wrap="repeat"):
     """
     if len(pyramid) == 1:
         return sample_2d(pyramid[0], uv, wrap=wrap)
+    wrap_u, wrap_v = _wraps(wrap)
+    c = pyramid[0].shape[-1]
+    # only the two levels around lod are fetched: the pyramid is packed into one (texels, c)
+    # table and each lookup carries its level's offset and size
+    sizes = np.array([(t.shape[0], t.shape[1]) for t in pyramid], np.int32)
+    offsets = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int32)
+    flat = jnp.concatenate([t.reshape(-1, c) for t in pyramid])
     lod = jnp.clip(lod, 0.0, len(pyramid) - 1.0)
-    out = 0.0
-    for level, tex in enumerate(pyramid):
-        weight = jnp.maximum(0.0, 1.0 - jnp.abs(lod - level))[..., None]
-        out = out + weight * sample_2d(tex, uv, wrap=wrap)
-    return out
+    lo = jax.lax.stop_gradient(jnp.floor(lod))
+    frac = (lod - lo)[..., None]  # weight of the coarser level (differentiable in lod)
+    lo = lo.astype(jnp.int32)
+
+    def level(k):
+        h, w, off = (
+            jnp.asarray(sizes[:, 0])[k],
+            jnp.asarray(sizes[:, 1])[k],
+            jnp.asarray(offsets)[k],
+        )
+        return _bilinear(lambda yi, xi: flat[off + yi * w + xi], h, w, uv, wrap_u, wrap_v)
+
+    fine = level(lo)
+    coarse = level(jnp.minimum(lo + 1, len(pyramid) - 1))
+    return fine + frac * (coarse - fine)
 
 
 def uv_lod(uv, mask, texture_shape):
