@@ -64,8 +64,10 @@ def safe_atan2(y, x, eps: float | None = None):
 
 
 def materialize(x):
-    """x itself, computed once. XLA's CPU fusion otherwise inlines cheap per-triangle producers
-    into per-pixel gathers and recomputes them for every pixel (optimization_barrier is removed
-    before fusion); a scatter's result is always materialized. Differentiable."""
+    """x itself, computed once into a buffer. XLA's CPU fusion otherwise inlines producers that
+    look cheap (per-triangle tables, texture lookups, shaded pixels) into every consumer that reads
+    them, e.g. per pixel, per channel or per shifted neighbour, and recomputes them there
+    (optimization_barrier is removed before fusion); a scatter's result is always materialized.
+    Differentiable; costs one copy of x."""
     n = x.shape[0]
     return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)
