@@ -260,7 +260,7 @@ def make_settings(dt=1.0 / 60.0, gravity=(0.0, -9.81, 0.0), num_substeps=8, dtyp
     )
 
 
-_BODY_KEYS = {
+BODY_KEYS = {
     "shape", "radius", "half_extents", "position", "velocity", "orientation", "angular_velocity",
     "mass", "restitution", "friction", "linear_drag", "orthogonal_drag", "angular_drag", "drag",
 }  # fmt: skip
@@ -278,10 +278,10 @@ def bodies_from_config(entries: Sequence[Mapping], dtype=None) -> tuple[RigidBod
     for i, entry in enumerate(entries):
         if not isinstance(entry, Mapping):
             raise ValueError(f"bodies[{i}] must be a table, got {entry!r}")
-        unknown = sorted(set(entry) - _BODY_KEYS)
+        unknown = sorted(set(entry) - BODY_KEYS)
         if unknown:
             raise ValueError(
-                f"bodies[{i}]: unknown key(s) {unknown}; allowed: {sorted(_BODY_KEYS)}"
+                f"bodies[{i}]: unknown key(s) {unknown}; allowed: {sorted(BODY_KEYS)}"
             )
         kw = dict(entry)
         shape = kw.pop("shape", "sphere")
