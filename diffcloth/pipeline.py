@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from diffcloth import physics, render, surface
+from diffcloth.physics.massspring import MASS_SPRING_FIELDS
 from diffcloth.physics.material import MATERIAL_FIELDS
 from diffcloth.render.lights import appearance_fields
 from diffcloth.shapes import Sphere
@@ -44,6 +45,8 @@ BODY_PARAMETERS = {
 #: name -> (scene field, field inside it). Every fittable parameter of a scene.
 PARAMETERS: dict[str, tuple[str, str]] = {
     **{name: ("material", name) for name in MATERIAL_FIELDS},
+    # the Provot mass-spring model's own fields (density and friction are shared)
+    **{name: ("material", name) for name in MASS_SPRING_FIELDS},
     "wind": ("sim", "wind"),
     **{name: ("appearance", name) for name in appearance_fields()},
     **{name: ("bodies", field) for name, field in BODY_PARAMETERS.items()},
@@ -71,7 +74,13 @@ def param_value(scene, name: str) -> jax.Array:
     if group == "bodies":
         _check_bodies(scene, name)
         return jnp.stack([getattr(b, field) for b in scene.bodies])
-    return getattr(getattr(scene, group), field)
+    target = getattr(scene, group)
+    if not hasattr(target, field):
+        raise ValueError(
+            f"parameter {name!r} does not exist in this scene's {group} "
+            f"({type(target).__name__}; [material] model decides which names apply)"
+        )
+    return getattr(target, field)
 
 
 def apply_params(scene, params: Mapping[str, jax.Array] | None):

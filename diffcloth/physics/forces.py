@@ -275,6 +275,8 @@ def _internal_forces(net, material, x, v):
 
 def _total_forces(net, material, x, v, gravity, wind):
     """Springs, bending, drag and gravity (3, R, C) on planar x, v."""
+    if hasattr(material, "total_forces_planar"):  # another force model (physics.massspring)
+        return material.total_forces_planar(net, x, v, gravity, wind)
     f = _forces_planar(net, material, x, v, wind=wind)
     return f + node_mass(net, material)[None] * gravity[:, None, None]
 
@@ -338,6 +340,8 @@ def internal_force_differential(net: Net, material: Material, x, dx, dv):
 
 def node_mass(net: Net, material: Material):
     """Lumped node masses, kg, (rows, cols): density * area (differentiable in density)."""
+    if hasattr(material, "node_mass"):  # another force model (physics.massspring)
+        return material.node_mass(net)
     return material.density * net.area
 
 
