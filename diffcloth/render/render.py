@@ -27,17 +27,31 @@ PLANE_COLOR = (0.6, 0.6, 0.6)
 
 
 @functools.lru_cache(maxsize=32)
-def _grid_neighbors_np(grid_shape):
+def _grid_neighbors_np(grid_shape, flipped: bool = False):
     from diffcloth.surface.tessellate import _faces_np
 
+    faces = _faces_np(*grid_shape)
+    if flipped:  # tessellate(flip=True) reverses each face's vertex order (faces[:, ::-1])
+        faces = faces[:, ::-1]
     with jax.ensure_compile_time_eval():  # concrete even when first called under a trace
-        return np.asarray(edge_neighbors(_faces_np(*grid_shape)))
+        return np.asarray(edge_neighbors(np.ascontiguousarray(faces)))
 
 
-def _grid_neighbors(grid_shape):
+def _grid_neighbors(surface):
     """Edge neighbours of a tessellated grid's triangles, computed once in numpy (a traced
-    `edge_neighbors` would sort inside every compiled program). None for other meshes."""
-    return None if grid_shape is None else jnp.asarray(_grid_neighbors_np(tuple(grid_shape)))
+    `edge_neighbors` would sort inside every compiled program). None for other meshes.
+
+    Column k is the triangle across the edge opposite vertex k of `surface.faces`, so the table
+    follows the winding: a flipped surface (faces[:, ::-1]) gets its columns reversed. (A table
+    built from the unflipped faces marks the internal diagonals of a flipped grid as silhouettes
+    and its border as internal: `antialias` then blends across the diagonals, and the image
+    jumps when the depth order of two such pixels swaps; issue 14.)
+    """
+    grid_shape = getattr(surface, "grid_shape", None)
+    if grid_shape is None:
+        return None
+    flipped = bool(getattr(surface, "flipped", False))
+    return jnp.asarray(_grid_neighbors_np(tuple(grid_shape), flipped))
 
 
 def _face_normals(positions, faces, normals):
@@ -221,7 +235,7 @@ def surface_gbuffer(
         faces,
         camera,
         attrs,
-        neighbors=_grid_neighbors(getattr(surface, "grid_shape", None)),
+        neighbors=_grid_neighbors(surface),
         cull_backfaces=cull_backfaces,
         max_tiles=max_tiles,
     )
