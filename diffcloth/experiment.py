@@ -178,11 +178,6 @@ def video_strip(video: np.ndarray) -> np.ndarray:
     return np.concatenate(list(np.asarray(video)), axis=2)
 
 
-def _display(video) -> np.ndarray:
-    """Linear RGB -> display (gamma 2.2), clipped to [0, 1]."""
-    return np.clip(np.asarray(video), 0.0, 1.0) ** (1.0 / 2.2)
-
-
 def run_fit_config(
     config_path,
     out_dir,
@@ -290,8 +285,8 @@ def run_fit_config(
         result,
         truth=truth,
         initial=result.initial,
-        target=_display(video_strip(targets)),
-        fitted=_display(video_strip(fitted_video)),
+        target=video_strip(targets),  # linear; compare.gif is sRGB-encoded by the report
+        fitted=video_strip(fitted_video),
         fps=10.0,
         gain=4.0,
         identifiability=ident,

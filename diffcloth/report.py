@@ -9,7 +9,7 @@ writes to the folder:
                 when the truth is known; array parameters are lists)
   loss.png     loss per step (log scale)
   params.png   every parameter against step, with the true value
-  compare.gif  target | fit | |difference| per frame (when both videos are given)
+  compare.gif  target | fit | |difference| per frame (when both videos are given), sRGB-encoded
   report.md    the table, the pictures and any extra sections
   metrics.jsonl  one JSON line per step: step, loss, params, grad_norm, wall_s
   environment.json  versions, backend, devices, x64 (`diffcloth.runtime.environment`)
@@ -136,6 +136,7 @@ def write_fit_report(
     extra_sections: Mapping[str, str] | Sequence[str] | None = None,
     title: str = "Fit report",
     plots: bool = True,
+    colorspace: str = "srgb",
 ) -> dict[str, Path]:
     """Write result.json, loss.png, params.png, compare.gif and report.md into `out_dir`.
 
@@ -150,6 +151,8 @@ def write_fit_report(
         identifiability.json).
       extra_sections: {heading: markdown} or a list of markdown blocks appended to report.md.
       plots: draw loss.png and params.png (needs matplotlib).
+      colorspace: "srgb" (default): target and fitted are linear RGB (as rendered) and compare.gif
+        is sRGB-encoded for viewing; "linear": they are written as given (already encoded).
     Returns:
       {"result", "metrics", "environment", "report", "loss", "params", "compare",
       "identifiability"}: the paths written.
@@ -170,9 +173,11 @@ def write_fit_report(
     if target is not None and fitted is not None:
         frames = side_by_side(target, fitted, gain=gain)
         if frames.ndim == 3:
-            paths["compare"] = save_png(out / "compare.png", frames)
+            paths["compare"] = save_png(out / "compare.png", frames, colorspace=colorspace)
         else:
-            paths["compare"] = save_video(out / "compare.gif", frames, fps=fps)
+            paths["compare"] = save_video(
+                out / "compare.gif", frames, fps=fps, colorspace=colorspace
+            )
     if identifiability is not None:
         from diffcloth.fit.identifiability import format_identifiability
 
@@ -191,7 +196,15 @@ def write_fit_report(
         md += ["## Convergence", "", "![loss](loss.png)", "", "![parameters](params.png)", ""]
     if "compare" in paths:
         name = paths["compare"].name
-        md += ["## Target | fit | difference", "", f"![compare]({name})", ""]
+        enc = "sRGB-encoded for display" if colorspace == "srgb" else "values as given"
+        md += [
+            "## Target | fit | difference",
+            "",
+            f"![compare]({name})",
+            "",
+            f"Images are {enc}; the fit itself compares linear RGB.",
+            "",
+        ]
     if identifiability is not None:
         md += ["## Identifiability", "", format_identifiability(identifiability), ""]
     if extra_sections:
