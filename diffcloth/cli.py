@@ -20,7 +20,7 @@ def _simulate(args) -> int:
     from diffcloth.config import ConfigError, build_physics, load_config
     from diffcloth.physics.rollout import ADVICE
     from diffcloth.pipeline import split_colliders
-    from diffcloth.scene import parse_bodies
+    from diffcloth.scene import build_bodies
 
     try:
         config = load_config(args.config)
@@ -29,7 +29,7 @@ def _simulate(args) -> int:
         return 2
     scene = build_physics(config)
     try:
-        bodies, two_way = parse_bodies(config.sections)
+        bodies, two_way = build_bodies(config)
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -19,7 +19,7 @@ import numpy as np
 
 from diffcloth import physics, render, surface
 from diffcloth.physics.material import MATERIAL_FIELDS
-from diffcloth.render.lights import _APPEARANCE_DEFAULTS
+from diffcloth.render.lights import appearance_fields
 from diffcloth.shapes import Sphere
 
 __all__ = [
@@ -51,7 +51,7 @@ BODY_PARAMETERS = {
 PARAMETERS: dict[str, tuple[str, str]] = {
     **{name: ("material", name) for name in MATERIAL_FIELDS},
     "wind": ("sim", "wind"),
-    **{name: ("appearance", name) for name in _APPEARANCE_DEFAULTS},
+    **{name: ("appearance", name) for name in appearance_fields()},
     **{name: ("bodies", field) for name, field in BODY_PARAMETERS.items()},
 }
 
