@@ -29,6 +29,7 @@ __all__ = [
     "apply_params",
     "check_param_values",
     "diagnose",
+    "first_bad_frame",
     "param_value",
     "render_frames",
     "simulate",
@@ -301,6 +302,15 @@ def trajectory_status(scene, traj, bodies=()) -> jax.Array:
     for b in bodies:
         ok &= jnp.all(jnp.isfinite(b.position)) & jnp.all(jnp.isfinite(b.velocity))
     return ok
+
+
+def first_bad_frame(scene, traj, bodies=()) -> int | None:
+    """Eager: the first frame whose cloth (or body) state is non-finite or blown up, or None."""
+    ok = np.asarray(physics.frames_ok(scene.net, traj, scene.sim, scene.state))
+    for b in bodies:
+        ok = ok & np.isfinite(np.asarray(b.position)).reshape(ok.shape[0], -1).all(axis=1)
+        ok = ok & np.isfinite(np.asarray(b.velocity)).reshape(ok.shape[0], -1).all(axis=1)
+    return None if ok.all() else int(np.argmin(ok))
 
 
 def _simulate_and_render(scene, params):

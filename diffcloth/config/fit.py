@@ -45,15 +45,12 @@ class FitSettings:
     truth: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
 
-_BODY_RANGES = {  # name -> (lo, hi, allowed range as text); mass excludes 0
-    "body_mass": (0.0, np.inf, "(0, inf) kg"),
-    "body_restitution": (0.0, 1.0, "[0, 1]"),
-    "body_friction": (0.0, np.inf, "[0, inf)"),
-}
-
-
 def _param_value(name: str, value, where: str):
     if isinstance(value, bool) or not isinstance(value, int | float | list):
+        raise cfg.ConfigError(f"[{where}] {name} = {value!r} must be a number or a list of numbers")
+    if isinstance(value, list) and not all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in value
+    ):
         raise cfg.ConfigError(f"[{where}] {name} = {value!r} must be a number or a list of numbers")
     arr = np.asarray(value, dtype=np.float64)
     if not np.all(np.isfinite(arr)):
@@ -61,11 +58,39 @@ def _param_value(name: str, value, where: str):
     return arr
 
 
+def _check_range(name: str, arr, value, where: str) -> None:
+    """The parameter's allowed range (diffcloth.pipeline.PARAMETER_RANGES, as `apply_params`)."""
+    from diffcloth.pipeline import PARAMETER_RANGES, ParamRange
+
+    rng = PARAMETER_RANGES.get(name, ParamRange())
+    if not rng.contains(arr):
+        raise cfg.ConfigError(f"[{where}] {name} = {value!r} is out of range; allowed {rng.text()}")
+
+
+def _check_fittable(name: str, arr, value) -> None:
+    """A starting value must lie strictly inside the fitted parameter's constraint (the optimizer
+    works on an unconstrained transform of it: log for positive values, logit for (0, 1))."""
+    from diffcloth.fit.constraints import Bounded, Positive
+    from diffcloth.fit.scene_fit import default_constraint
+
+    con = default_constraint(name)
+    if isinstance(con, Positive) and not np.all(arr > 0):
+        raise cfg.ConfigError(
+            f"[fit.initial] {name} = {value!r} is outside the fitted range (0, inf): {name} is "
+            "fitted in log space, so its starting value must be > 0"
+        )
+    if isinstance(con, Bounded) and not np.all((arr > con.lo) & (arr < con.hi)):
+        raise cfg.ConfigError(
+            f"[fit.initial] {name} = {value!r} is outside the fitted range ({con.lo:g}, "
+            f"{con.hi:g}): {name} is fitted through a logistic transform, so its starting value "
+            "must lie strictly inside"
+        )
+
+
 def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitSettings:
     """Validate [fit], [fit.initial] and [truth] (ConfigError names the bad key and range)."""
     from diffcloth import pipeline
     from diffcloth.fit.scene_fit import LOSSES
-    from diffcloth.physics.material import MATERIAL_FIELDS, material_range
 
     if "truth" in sections and "fit" not in sections:
         raise cfg.ConfigError("[truth] needs a [fit] section naming the free parameters")
@@ -86,28 +111,30 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
     except ValueError as err:
         raise cfg.ConfigError(f"[fit] free: {err}") from None
     initial = {}
-    for name, value in t.get("initial", {}).items():
+    init_table = t.get("initial", {})
+    if not isinstance(init_table, Mapping):
+        raise cfg.ConfigError(
+            f"[fit] initial = {init_table!r} must be a table of starting values, e.g. "
+            f"[fit.initial] {free[0]} = ..."
+        )
+    for name, value in init_table.items():
         if name not in free:
             raise cfg.ConfigError(f"[fit.initial] {name} is not a free parameter; free: {free}")
-        initial[name] = _param_value(name, value, "fit.initial")
+        arr = _param_value(name, value, "fit.initial")
+        _check_range(name, arr, value, "fit.initial")
+        _check_fittable(name, arr, value)
+        initial[name] = arr
     truth = {}
-    for name, value in sections.get("truth", {}).items():
+    truth_table = sections.get("truth", {})
+    if not isinstance(truth_table, Mapping):
+        raise cfg.ConfigError(f"[truth] must be a table of name = value, got {truth_table!r}")
+    for name, value in truth_table.items():
         try:
             pipeline.check_param_names([name])
         except ValueError as err:
             raise cfg.ConfigError(f"[truth] {err}") from None
         arr = _param_value(name, value, "truth")
-        if name in MATERIAL_FIELDS:
-            lo, inclusive, unit, _ = MATERIAL_FIELDS[name]
-            if not np.all(arr >= lo if inclusive else arr > lo):
-                raise cfg.ConfigError(
-                    f"[truth] {name} = {value!r} is out of range; "
-                    f"allowed {material_range(name)} {unit}"
-                )
-        if name in _BODY_RANGES:
-            lo, hi, text = _BODY_RANGES[name]
-            if not np.all((arr > lo if name == "body_mass" else arr >= lo) & (arr <= hi)):
-                raise cfg.ConfigError(f"[truth] {name} = {value!r} is out of range; allowed {text}")
+        _check_range(name, arr, value, "truth")
         truth[name] = arr
     targets = t.get("targets")
     if targets is None and not truth:

@@ -229,22 +229,25 @@ def check_stability(
     return h_max
 
 
-def blowup_bound(sim: SimSettings, state: ClothState, num_frames: int):
+def blowup_bound(sim: SimSettings, state: ClothState, num_frames: int, first_frame: int = 0):
     """(num_frames,) m: how far from the rest net frame k may legitimately be.
 
     BLOWUP_DISTANCE plus what a free fall could cover by the end of frame k (t = (k + 1) dt):
     (max initial speed + wind speed) t + |g| t^2, twice the free-fall distance |g| t^2 / 2 as a
     margin for spring and drag forces. A cloth falling freely for minutes is not "blown up"; an
-    exploding explicit integrator exceeds this within a few frames.
+    exploding explicit integrator exceeds this within a few frames. `state` is the initial state
+    of the whole run and `first_frame` the index of the first frame checked (for a run in chunks).
     """
-    t = (jnp.arange(num_frames) + 1.0) * sim.dt
+    t = (jnp.arange(num_frames) + 1.0 + first_frame) * sim.dt
     v0 = jnp.max(jnp.sqrt(jnp.sum(jnp.where(jnp.isfinite(state.v), state.v, 0.0) ** 2, -1)))
     wind = jnp.sqrt(jnp.sum(sim.wind**2))
     g = jnp.sqrt(jnp.sum(sim.gravity**2))
     return BLOWUP_DISTANCE + (v0 + wind) * t + g * t * t
 
 
-def frames_ok(net: Net, traj: ClothState, sim: SimSettings | None = None, state=None):
+def frames_ok(
+    net: Net, traj: ClothState, sim: SimSettings | None = None, state=None, first_frame: int = 0
+):
     """(frames,) bool, usable under jit and vmap: frame k is finite (positions and velocities) and
     within `blowup_bound` of the rest net (BLOWUP_DISTANCE when `sim`/`state` are not given)."""
     T = traj.x.shape[0]
@@ -253,7 +256,10 @@ def frames_ok(net: Net, traj: ClothState, sim: SimSettings | None = None, state=
     dist = jnp.max(
         jnp.abs(jnp.where(jnp.isfinite(traj.x), traj.x, 0.0) - net.rest[None]), axis=axes
     )
-    bound = BLOWUP_DISTANCE if sim is None or state is None else blowup_bound(sim, state, T)
+    if sim is None or state is None:
+        bound = BLOWUP_DISTANCE
+    else:
+        bound = blowup_bound(sim, state, T, first_frame)
     return finite & (dist < bound)
 
 
