@@ -202,10 +202,7 @@ def _render(args) -> int:
              f"{ADVICE}")  # fmt: skip
         return 1
     print(f"  simulated in {time.perf_counter() - t0:.1f} s", flush=True)
-    xs = traj.x[k - 1 :: k]
-    spheres = pipeline.frame_spheres(scene, bodies)
-    if spheres is not None:
-        spheres = type(spheres)(spheres.center[k - 1 :: k], spheres.radius)
+    xs, spheres = pipeline.rendered_states(scene, traj, bodies)
     render_chunk = jax.jit(pipeline.render_frames)
     chunk = max(1, args.chunk)
     parts = []

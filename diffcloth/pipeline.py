@@ -32,6 +32,7 @@ __all__ = [
     "first_bad_frame",
     "param_value",
     "render_frames",
+    "rendered_states",
     "simulate",
     "simulate_all",
     "simulate_and_render",
@@ -304,6 +305,32 @@ def trajectory_status(scene, traj, bodies=()) -> jax.Array:
     return ok
 
 
+def rendered_states(scene, traj, bodies=()):
+    """The states the video shows: (control nets (T_video, rows, cols, 3), per-frame spheres or
+    None). With frame_stride k the video has T_video = num_frames // k images: simulated frames
+    k, 2k, ... (first_frame = 1; frame j is the state after j frames, the trajectory's entry
+    j - 1) or 0, k, 2k, ... (first_frame = 0, starting from the initial state)."""
+    k = scene.frame_stride
+    n = scene.num_frames // k
+    if scene.first_frame == 1:
+        xs = traj.x[k - 1 :: k][:n]
+        spheres = frame_spheres(scene, bodies)
+        if spheres is not None:
+            spheres = Sphere(spheres.center[k - 1 :: k][:n], spheres.radius)
+        return xs, spheres
+    xs = jnp.concatenate([scene.state.x[None], traj.x[k - 1 :: k][: n - 1]])
+    if bodies:
+        bodies = tuple(
+            jax.tree_util.tree_map(lambda a0, a: jnp.concatenate([a0[None], a]), b0, b)
+            for b0, b in zip(scene.bodies, bodies, strict=True)
+        )
+    spheres = frame_spheres(scene, bodies)
+    if spheres is not None:
+        idx = np.arange(n) * k
+        spheres = Sphere(spheres.center[idx], spheres.radius)
+    return xs, spheres
+
+
 def first_bad_frame(scene, traj, bodies=()) -> int | None:
     """Eager: the first frame whose cloth (or body) state is non-finite or blown up, or None."""
     ok = np.asarray(physics.frames_ok(scene.net, traj, scene.sim, scene.state))
@@ -316,11 +343,8 @@ def first_bad_frame(scene, traj, bodies=()) -> int | None:
 def _simulate_and_render(scene, params):
     scene = apply_params(scene, params)
     traj, bodies = simulate_all(scene)
-    k = scene.frame_stride
-    spheres = frame_spheres(scene, bodies)
-    if spheres is not None:
-        spheres = Sphere(spheres.center[k - 1 :: k], spheres.radius)
-    video = render_frames(scene, traj.x[k - 1 :: k], spheres)
+    xs, spheres = rendered_states(scene, traj, bodies)
+    video = render_frames(scene, xs, spheres)
     return video, trajectory_status(scene, traj, bodies)
 
 
@@ -332,8 +356,9 @@ def simulate_and_render(scene, params=None) -> jax.Array:
       params: optional dict name -> value overriding the scene's own (see `PARAMETERS`);
         differentiable. Concrete values are checked against PARAMETER_RANGES (ValueError).
     Returns:
-      video (num_cameras, T, H, W, 3), linear RGB, T = num_frames // frame_stride (frames
-      frame_stride, 2 frame_stride, ...; the initial state is not drawn). When the simulation
+      video (num_cameras, T, H, W, 3), linear RGB, T = num_frames // frame_stride: simulated
+      frames k, 2k, ... for frame_stride k (the initial state is not drawn), or 0, k, 2k, ...
+      with scene.first_frame = 0 (see `rendered_states`). When the simulation
       becomes non-finite or blows up the whole video is NaN, so a loss on it is NaN and a fit stops
       with status "nonfinite"; a blow-up never comes out as a finite picture. Use
       `simulate_and_render_checked` for an explicit flag.
@@ -375,8 +400,7 @@ def diagnose(scene, params=None) -> str | None:
             f"{scene.num_frames} "
             f"({ADVICE})"
         )
-    k = scene.frame_stride
-    xs = traj.x[k - 1 :: k]
+    xs, spheres = rendered_states(scene, traj, bodies)
     surf = jax.jit(
         jax.vmap(lambda x: surface.tessellate(x, scene.level, scene.basis, flip=scene.flip))
     )(xs)
@@ -387,9 +411,6 @@ def diagnose(scene, params=None) -> str | None:
                 f"surface: non-finite {field} in rendered frame {int(np.argmin(good))} "
                 "(degenerate control net?)"
             )
-    spheres = frame_spheres(scene, bodies)
-    if spheres is not None:
-        spheres = Sphere(spheres.center[k - 1 :: k], spheres.radius)
     video = np.asarray(jax.jit(render_frames)(scene, xs, spheres))
     good = np.isfinite(video).reshape(video.shape[0], video.shape[1], -1).all(axis=2)
     if not good.all():

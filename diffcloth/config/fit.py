@@ -10,6 +10,9 @@
         identifiability = true, noise_sigma = 0.01,
         targets = "folder"   (instead of [truth]: PNGs, one subfolder cam0, cam1, ... per camera
                               or the PNGs directly for a single camera)
+        target_glob = "*.png", target_cameras = ["cam0", ...], target_frames = [first, stop],
+        target_stride = 1, colorspace = "auto" | "srgb" | "linear"   (target layout, see
+                              diffcloth.experiment.load_targets)
 [fit.initial]  name = value   starting values (default: the scene's own)
 [truth]        name = value   true values, used to render synthetic targets
 """
@@ -41,6 +44,11 @@ class FitSettings:
     identifiability: bool = True
     noise_sigma: float = 0.01
     targets: str | None = None
+    target_glob: str = "*.png"
+    target_cameras: tuple[str, ...] | None = None
+    target_frames: tuple[int, int] | None = None
+    target_stride: int = 1
+    colorspace: str = "auto"
     initial: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     truth: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
@@ -146,6 +154,36 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
     multistart = cfg.get_number(t, "multistart", 1, where=w, lo=1, hi=64, integer=True)
     devices = cfg.get_number(t, "devices", 1, where=w, lo=1, hi=4096, integer=True)
     check_devices(devices, multistart, "[fit] devices")
+    glob = t.get("target_glob", "*.png")
+    if not isinstance(glob, str) or not glob.strip() or glob.startswith("/") or ".." in glob:
+        raise cfg.ConfigError(
+            f"[fit] target_glob = {glob!r} must be a file pattern relative to each camera folder, "
+            'e.g. "*.png" or "rgb/frame_*.png"'
+        )
+    cams = t.get("target_cameras")
+    if cams is not None:
+        if (not isinstance(cams, list) or not cams
+                or not all(isinstance(c, str) and c.strip() and ".." not in c for c in cams)):
+            raise cfg.ConfigError(
+                f"[fit] target_cameras = {cams!r} must be a list of folder names (or globs "
+                'matching one folder each) inside targets, one per camera, e.g. ["left", "right"]'
+            )  # fmt: skip
+        cams = tuple(cams)
+    frames = t.get("target_frames")
+    if frames is not None:
+        if (not isinstance(frames, list) or len(frames) != 2
+                or not all(isinstance(f, int) and not isinstance(f, bool) for f in frames)
+                or not 0 <= frames[0] < frames[1]):
+            raise cfg.ConfigError(
+                f"[fit] target_frames = {frames!r} must be [first, stop]: 0 <= first < stop, "
+                "image indices after sorting (stop excluded)"
+            )  # fmt: skip
+        frames = (int(frames[0]), int(frames[1]))
+    if targets is None:
+        for key in ("target_glob", "target_cameras", "target_frames", "target_stride",
+                    "colorspace"):  # fmt: skip
+            if key in t:
+                raise cfg.ConfigError(f"[fit] {key} needs [fit] targets (a folder of images)")
     ident = t.get("identifiability", True)
     if not isinstance(ident, bool):
         raise cfg.ConfigError("[fit] identifiability must be true or false")
@@ -163,6 +201,11 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         identifiability=ident,
         noise_sigma=cfg.get_number(t, "noise_sigma", 0.01, where=w, lo=0, lo_inclusive=False),
         targets=targets,
+        target_glob=glob,
+        target_cameras=cams,
+        target_frames=frames,
+        target_stride=cfg.get_number(t, "target_stride", 1, where=w, lo=1, integer=True),
+        colorspace=cfg.get_choice(t, "colorspace", "auto", ("auto", "srgb", "linear"), where=w),
         initial=initial,
         truth=truth,
     )
