@@ -39,6 +39,9 @@ class Scene:
       num_frames, level, basis, shading, flip, frame_stride, background: static settings.
       bodies: tuple of `physics.RigidBody` simulated with the cloth (empty: cloth only).
       two_way: static; whether the cloth pushes back on the bodies.
+      first_frame: static; 1 (default): the video's first image is the state after frame_stride
+        frames (images show frames k, 2k, ..., the initial state is not drawn); 0: the first
+        image is the initial state (frames 0, k, 2k, ...). The number of images is the same.
     """
 
     net: Any
@@ -60,6 +63,7 @@ class Scene:
     background: tuple = dataclasses.field(default=(0.05, 0.05, 0.08), metadata={"static": True})
     bodies: tuple = ()
     two_way: bool = dataclasses.field(default=True, metadata={"static": True})
+    first_frame: int = dataclasses.field(default=1, metadata={"static": True})
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -191,6 +195,7 @@ def build_scene(
         background=rc.background,
         bodies=bodies,
         two_way=two_way,
+        first_frame=rc.first_frame,
     )
 
 

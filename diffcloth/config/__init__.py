@@ -135,7 +135,7 @@ def parse_config(data: Mapping[str, Any], path: str | None = None) -> Config:
         if name in data and not isinstance(data[name], Mapping):
             raise ConfigError(f"[{name}] must be a table, got {data[name]!r}")
     base_dir = Path(path).parent if path else None
-    return Config(
+    config = Config(
         net=parse_net(data.get("net", {})),
         material=parse_material(data.get("material", {})),
         sim=parse_sim(data.get("sim", {})),
@@ -152,6 +152,18 @@ def parse_config(data: Mapping[str, Any], path: str | None = None) -> Config:
         ),
         path=path,
     )
+    _check_across_sections(config)
+    return config
+
+
+def _check_across_sections(config: Config) -> None:
+    """Rules that tie two sections together."""
+    stride, frames = config.render.frame_stride, config.sim.num_frames
+    if stride > frames:
+        raise ConfigError(
+            f"[render] frame_stride = {stride} is larger than [sim] num_frames = {frames}, so no "
+            f"frame would be rendered; allowed range [1, {frames}]"
+        )
 
 
 def load_config(path) -> Config:

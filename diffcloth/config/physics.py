@@ -149,7 +149,9 @@ def parse_sim(t: Mapping[str, Any]) -> SimConfig:
     d = SimConfig()
     return SimConfig(
         dt=get_number(t, "dt", d.dt, where=w, lo=0, lo_inclusive=False),
-        num_frames=get_number(t, "num_frames", d.num_frames, where=w, lo=0, integer=True),
+        num_frames=get_number(
+            t, "num_frames", d.num_frames, where=w, lo=1, hi=10_000_000, integer=True
+        ),
         num_substeps=get_number(t, "num_substeps", d.num_substeps, where=w, lo=1, integer=True),
         integrator=get_choice(t, "integrator", d.integrator, INTEGRATORS, where=w),
         gravity=get_vec3(t, "gravity", d.gravity, where=w),

@@ -37,6 +37,7 @@ class RenderConfig:
     frame_stride: int = 1
     flip: bool = True
     textures: str = "none"
+    first_frame: int = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,6 +97,7 @@ def parse_render(t: Mapping[str, Any]) -> RenderConfig:
         frame_stride=get_number(t, "frame_stride", d.frame_stride, where=w, lo=1, integer=True),
         flip=get_bool(t, "flip", d.flip, where=w),
         textures=get_choice(t, "textures", d.textures, TEXTURE_CHOICES, where=w),
+        first_frame=get_number(t, "first_frame", d.first_frame, where=w, lo=0, hi=1, integer=True),
     )
 
 
