@@ -51,6 +51,8 @@ class Scene:
       num_frames, level, basis, shading, flip, frame_stride, background: static settings.
       bodies: tuple of `physics.RigidBody` simulated with the cloth (empty: cloth only).
       two_way: static; whether the cloth pushes back on the bodies.
+      capture: optional `render.Capture`: per-camera exposure gain, small pose error and
+        background colour (None: gain 1, no pose error, `background` for every camera).
     """
 
     net: Any
@@ -72,6 +74,7 @@ class Scene:
     background: tuple = dataclasses.field(default=(0.05, 0.05, 0.08), metadata={"static": True})
     bodies: tuple = ()
     two_way: bool = dataclasses.field(default=True, metadata={"static": True})
+    capture: Any = None
 
     @property
     def image_shape(self) -> tuple[int, int]:

@@ -188,6 +188,7 @@ def render(
     cull_backfaces: bool = False,
     two_sided: bool = True,
     max_tiles: int | None = None,
+    return_cloth_mask: bool = False,
 ):
     """Rasterize, shade and composite a cloth surface.
 
@@ -206,9 +207,13 @@ def render(
       antialiased: apply the rasterizer's silhouette antialiasing (gives edge gradients).
       two_sided: light the back side of the cloth with the flipped normal (cloth is thin).
       max_tiles: rasterizer window budget (see `raster.rasterize`).
+      return_cloth_mask: also return the visible cloth coverage (H, W) in [0, 1]: the antialiased
+        cloth alpha (soft at silhouettes, so differentiable w.r.t. the geometry there) times the
+        part of each pixel not covered by a sphere drawn in front. The image is unchanged.
     Returns:
       (H, W, 4) image: linear RGB (not clipped) and alpha = coverage. With a background the RGB is
       composited over it; the alpha channel still reports coverage of cloth and spheres.
+      With return_cloth_mask: (image, cloth_mask).
     """
     if shading not in MODES:
         raise ValueError(f"shading must be one of {MODES}, got {shading!r}")
@@ -237,6 +242,7 @@ def render(
         # gathers, bump maps) would be recomputed for each neighbour and channel (with the
         # materializations in shade: minnaert render 265 -> 46 ms at 256^2, benchmarks/shading.py)
         img = antialias(materialize(img), buf)
+    cloth_mask = img[..., 3]
     if spheres is not None and draw_spheres:
         sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)
@@ -244,7 +250,10 @@ def render(
         over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
         under = img + (1.0 - img[..., 3:]) * sphere_rgba  # cloth over sphere
         img = jnp.where(front, over, under)
+        cloth_mask = jnp.where(front[..., 0], (1.0 - sphere_rgba[..., 3]) * cloth_mask, cloth_mask)
     if background is not None:
         bg = jnp.reshape(jnp.asarray(background, img.dtype), (1, 1, 3))
         img = jnp.concatenate([img[..., :3] + (1.0 - img[..., 3:]) * bg, img[..., 3:]], axis=-1)
+    if return_cloth_mask:
+        return img, cloth_mask
     return img
