@@ -290,6 +290,7 @@ def render(
     plane_color=PLANE_COLOR,
     occluders=None,
     shadow_map_size: int = 256,
+    return_cloth_mask: bool = False,
 ):
     """Rasterize, shade and composite a cloth surface.
 
@@ -315,6 +316,9 @@ def render(
       occluders: optional extra shadow-casting triangle mesh (positions (n, 3), faces (m, 3)),
         e.g. box bodies; differentiable in the positions. (Cast only; drawing is the caller's.)
       shadow_map_size: static shadow-map size in texels (used only by lights with shadows).
+      return_cloth_mask: also return the visible cloth coverage (H, W) in [0, 1]: the antialiased
+        cloth alpha (soft at silhouettes, so differentiable w.r.t. the geometry there) times the
+        part of each pixel not covered by a sphere or plane drawn in front. The image is unchanged.
     Shadows: lights whose `shadows` flag is set (see `make_lights`) are occluded by the cloth
       (plus `occluders`) through a shadow map and by `spheres` analytically, on the cloth, the
       spheres and the planes (`diffcloth.render.shadows`). Without shadow-casting lights no
@@ -322,6 +326,7 @@ def render(
     Returns:
       (H, W, 4) image: linear RGB (not clipped) and alpha = coverage. With a background the RGB is
       composited over it; the alpha channel still reports coverage of cloth, spheres and planes.
+      With return_cloth_mask: (image, cloth_mask).
     """
     if shading not in MODES:
         raise ValueError(f"shading must be one of {MODES}, got {shading!r}")
@@ -359,6 +364,7 @@ def render(
         # gathers, bump maps) would be recomputed for each neighbour and channel (with the
         # materializations in shade: minnaert render 265 -> 46 ms at 256^2, benchmarks/shading.py)
         img = antialias(materialize(img), buf)
+    cloth_mask = img[..., 3]
     if spheres is not None and draw_spheres:
         sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)
@@ -366,6 +372,7 @@ def render(
         over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
         under = img + (1.0 - img[..., 3:]) * sphere_rgba  # cloth over sphere
         img = jnp.where(front, over, under)
+        cloth_mask = jnp.where(front[..., 0], (1.0 - sphere_rgba[..., 3]) * cloth_mask, cloth_mask)
         depth = jnp.minimum(buf.depth, sphere_depth)
     else:
         depth = buf.depth
@@ -374,6 +381,7 @@ def render(
             camera, planes, lights, appearance, plane_color, maps
         )
         front = (plane_depth < depth)[..., None]
+        cloth_mask = jnp.where(front[..., 0], (1.0 - plane_rgba[..., 3]) * cloth_mask, cloth_mask)
         img = jnp.where(
             front,
             plane_rgba + (1.0 - plane_rgba[..., 3:]) * img,
@@ -382,4 +390,6 @@ def render(
     if background is not None:
         bg = jnp.reshape(jnp.asarray(background, img.dtype), (1, 1, 3))
         img = jnp.concatenate([img[..., :3] + (1.0 - img[..., 3:]) * bg, img[..., 3:]], axis=-1)
+    if return_cloth_mask:
+        return img, cloth_mask
     return img
