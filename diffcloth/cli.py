@@ -372,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("path", help="scene TOML or fit result folder (see docs/viewer.md)")
     v.add_argument("--host", default="127.0.0.1", help="address to serve on (default: local only)")
     v.add_argument("--port", type=int, default=8080)
-    v.add_argument("--export", default=None, metavar="HTML", help="write a self-contained recording")
+    v.add_argument("--export", metavar="HTML", help="write a self-contained recording instead")
     v.add_argument("--side-by-side", action="store_true", help="--export: target beside the fit")
     v.add_argument("--level", type=int, default=None, help="tessellation level of the 3D cloth")
     v.add_argument("--size", type=int, default=256, help="image size of the render panel")

@@ -57,6 +57,12 @@ def _plane_mesh(normal, offset, center):
     return v, np.array([[0, 1, 2], [0, 2, 3]])
 
 
+def _lights(server: viser.ViserServer) -> None:
+    # Shadows off: they cost a lot in software WebGL (headless browsers, remote desktops).
+    server.scene.configure_default_lights(enabled=True, cast_shadow=False)
+    server.scene.configure_environment_map(hdri=None)
+
+
 class _Scene3D:
     """The scene nodes of one model: cloth, target cloth, spheres, planes, bodies."""
 
@@ -64,9 +70,7 @@ class _Scene3D:
         self.server, self.model = server, model
         s = server.scene
         s.set_up_direction("+y")
-        # Shadows off: they cost a lot in software WebGL (headless browsers, remote desktops).
-        s.configure_default_lights(enabled=True, cast_shadow=False)
-        s.configure_environment_map(environment_intensity=0.35)
+        _lights(server)
         cams = model.cameras()
         if cams:
             ic = server.initial_camera
@@ -103,8 +107,10 @@ class _Scene3D:
             for i, b in enumerate(model.bodies()):
                 name = f"{root}bodies/{i}"
                 if b["shape"] == "sphere":
-                    h = s.add_icosphere(name, radius=SPHERE_SHRINK * b["radius"],
-                                        color=model.sphere_color, subdivisions=4, **NO_SHADOW)  # fmt: skip
+                    r = SPHERE_SHRINK * b["radius"]
+                    h = s.add_icosphere(
+                        name, radius=r, color=model.sphere_color, subdivisions=4, **NO_SHADOW
+                    )
                 else:
                     h = s.add_box(name, dimensions=tuple(2 * b["half_extents"]),
                                   color=model.sphere_color, **NO_SHADOW)  # fmt: skip
@@ -131,7 +137,9 @@ class _Scene3D:
             return
         rest = self.model.scene.net.rest
         extent = float(np.ptp(np.asarray(rest)[..., 0])) if rest.size else 1.0
-        self.target_root.position = (1.4 * max(extent, 0.5), 0.0, 0.0) if side_by_side else (0, 0, 0)
+        self.target_root.position = (
+            (1.4 * max(extent, 0.5), 0.0, 0.0) if side_by_side else (0, 0, 0)
+        )
 
 
 class Viewer:
@@ -201,9 +209,7 @@ class Viewer:
         with gui.add_folder("Cameras"):
             gui.add_markdown("Drag to orbit, scroll to zoom; or jump to a scene camera:")
             for i, pose in enumerate(cams):
-                gui.add_button(f"camera {i}").on_click(
-                    lambda _, pose=pose: self.set_camera(pose)
-                )
+                gui.add_button(f"camera {i}").on_click(lambda _, pose=pose: self.set_camera(pose))
         self.sliders = {}
         with gui.add_folder("Material"):
             for name, (label, unit, scale) in SLIDERS.items():
@@ -211,8 +217,13 @@ class Viewer:
                 lo, hi = slider_range(name, value)
                 if scale == "log":
                     init = math.log10(value) if value > 0 else lo
-                    h = gui.add_slider(f"log10 {label} ({unit})", min=round(lo, 2),
-                                       max=round(hi, 2), step=0.05, initial_value=round(init, 2))
+                    h = gui.add_slider(
+                        f"log10 {label} ({unit})",
+                        min=round(lo, 2),
+                        max=round(hi, 2),
+                        step=0.05,
+                        initial_value=round(init, 2),
+                    )
                 else:  # fmt: skip
                     h = gui.add_slider(f"{label} ({unit})", min=lo, max=round(hi, 3),
                                        step=round(hi / 100, 4), initial_value=value)  # fmt: skip
@@ -233,7 +244,8 @@ class Viewer:
                 "shading", ("off",) + tuple(SHADING_MODES), initial_value="off"
             )
             self.render_cam = gui.add_dropdown(
-                "camera", tuple(f"camera {i}" for i in range(len(cams))),
+                "camera",
+                tuple(f"camera {i}" for i in range(len(cams))),
                 initial_value="camera 0",
             )
             self.image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="render")
@@ -403,9 +415,8 @@ class Viewer:
                 log.exception("render failed")
                 continue
             self.image.image = img
-            self.render_note.content = (
-                f"{mode}, camera {cam}, frame {self.frame}: {1e3 * (time.perf_counter() - t0):.0f} ms"
-            )
+            ms = 1e3 * (time.perf_counter() - t0)
+            self.render_note.content = f"{mode}, camera {cam}, frame {self.frame}: {ms:.0f} ms"
 
     # ---- lifetime -----------------------------------------------------------------------------
     def serve_forever(self) -> None:
@@ -437,6 +448,7 @@ def export_html(model: ViewModel, path, *, side_by_side: bool = False, speed: fl
         scene3d = _Scene3D(server, model)
         scene3d.layout(side_by_side)
         serializer = server.get_scene_serializer()
+        _lights(server)  # the lighting messages are not part of the snapshot: record them
         for t in range(model.num_frames):
             scene3d.show(t)
             serializer.insert_sleep(model.dt / speed)

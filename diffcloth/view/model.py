@@ -176,7 +176,9 @@ def _sphere_radii(scene):
 
 
 def _to_numpy(frames: Frames) -> Frames:
-    return Frames(**{f.name: np.asarray(getattr(frames, f.name)) for f in dataclasses.fields(Frames)})
+    return Frames(
+        **{f.name: np.asarray(getattr(frames, f.name)) for f in dataclasses.fields(Frames)}
+    )
 
 
 def camera_pose(camera) -> dict[str, Any]:
@@ -360,7 +362,9 @@ class ViewModel:
             old = {k: np.copy(v) for k, v in self.values.items()}
             for name, value in (changes or {}).items():
                 if name != "wind" and name not in SLIDERS:
-                    raise ValueError(f"unknown slider {name!r}; allowed: wind, {', '.join(SLIDERS)}")
+                    raise ValueError(
+                        f"unknown slider {name!r}; allowed: wind, {', '.join(SLIDERS)}"
+                    )
                 self.values[name] = (
                     np.asarray(value, np.float64) if name == "wind" else float(value)
                 )
@@ -434,13 +438,13 @@ class ViewModel:
         with self._lock:
             state, bodies = self._state_at(frame)
             b = bodies[body]
-            bodies = bodies[:body] + (
-                dataclasses.replace(b, velocity=b.velocity + jnp.asarray(delta_v, b.velocity.dtype)),
-            ) + bodies[body + 1 :]  # fmt: skip
+            dv = jnp.asarray(delta_v, b.velocity.dtype)
+            bodies = list(bodies)
+            bodies[body] = dataclasses.replace(b, velocity=b.velocity + dv)
             wall = self._continue_from(frame, state, bodies)
             self._note(
-                f"re-simulation {self.resim_count}: push body {body} by {list(np.round(delta_v, 3))}"
-                f" m/s after frame {frame} in {1e3 * wall:.0f} ms"
+                f"re-simulation {self.resim_count}: push body {body} by "
+                f"{np.round(delta_v, 3).tolist()} m/s after frame {frame} in {1e3 * wall:.0f} ms"
             )
             return wall
 
@@ -501,7 +505,9 @@ class ViewModel:
             centers.append(self.frames.body_position[frame, balls])
         c = np.concatenate(centers) if centers else np.zeros((0, 3))
         dtype = self.scene.net.rest.dtype
-        img = _RENDER(scene, self._params(), jnp.asarray(self.frames.x[frame]), jnp.asarray(c, dtype))
+        img = _RENDER(
+            scene, self._params(), jnp.asarray(self.frames.x[frame]), jnp.asarray(c, dtype)
+        )
         img = np.clip(np.asarray(img, np.float64), 0.0, 1.0) ** (1.0 / 2.2)
         return (255 * img + 0.5).astype(np.uint8)
 
