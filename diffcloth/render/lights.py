@@ -266,6 +266,11 @@ _POSITIVE = ("shininess", "minnaert_k", "ior")
 _NONNEGATIVE = ("sphere_distance_falloff", "sphere_rim_power", "second_pass_alpha")
 
 
+def appearance_fields() -> tuple[str, ...]:
+    """Names of the `Appearance` fields, in order (the keys [appearance] allows)."""
+    return tuple(_APPEARANCE_DEFAULTS)
+
+
 def make_appearance(*, dtype=None, **values) -> Appearance:
     """Validated constructor; any field not given takes its default (see `Appearance`).
 

@@ -27,17 +27,31 @@ PLANE_COLOR = (0.6, 0.6, 0.6)
 
 
 @functools.lru_cache(maxsize=32)
-def _grid_neighbors_np(grid_shape):
+def _grid_neighbors_np(grid_shape, flipped: bool = False):
     from diffcloth.surface.tessellate import _faces_np
 
+    faces = _faces_np(*grid_shape)
+    if flipped:  # tessellate(flip=True) reverses each face's vertex order (faces[:, ::-1])
+        faces = faces[:, ::-1]
     with jax.ensure_compile_time_eval():  # concrete even when first called under a trace
-        return np.asarray(edge_neighbors(_faces_np(*grid_shape)))
+        return np.asarray(edge_neighbors(np.ascontiguousarray(faces)))
 
 
-def _grid_neighbors(grid_shape):
+def _grid_neighbors(surface):
     """Edge neighbours of a tessellated grid's triangles, computed once in numpy (a traced
-    `edge_neighbors` would sort inside every compiled program). None for other meshes."""
-    return None if grid_shape is None else jnp.asarray(_grid_neighbors_np(tuple(grid_shape)))
+    `edge_neighbors` would sort inside every compiled program). None for other meshes.
+
+    Column k is the triangle across the edge opposite vertex k of `surface.faces`, so the table
+    follows the winding: a flipped surface (faces[:, ::-1]) gets its columns reversed. (A table
+    built from the unflipped faces marks the internal diagonals of a flipped grid as silhouettes
+    and its border as internal: `antialias` then blends across the diagonals, and the image
+    jumps when the depth order of two such pixels swaps; issue 14.)
+    """
+    grid_shape = getattr(surface, "grid_shape", None)
+    if grid_shape is None:
+        return None
+    flipped = bool(getattr(surface, "flipped", False))
+    return jnp.asarray(_grid_neighbors_np(tuple(grid_shape), flipped))
 
 
 def _face_normals(positions, faces, normals):
@@ -221,7 +235,7 @@ def surface_gbuffer(
         faces,
         camera,
         attrs,
-        neighbors=_grid_neighbors(getattr(surface, "grid_shape", None)),
+        neighbors=_grid_neighbors(surface),
         cull_backfaces=cull_backfaces,
         max_tiles=max_tiles,
     )
@@ -276,6 +290,7 @@ def render(
     plane_color=PLANE_COLOR,
     occluders=None,
     shadow_map_size: int = 256,
+    return_cloth_mask: bool = False,
 ):
     """Rasterize, shade and composite a cloth surface.
 
@@ -301,6 +316,9 @@ def render(
       occluders: optional extra shadow-casting triangle mesh (positions (n, 3), faces (m, 3)),
         e.g. box bodies; differentiable in the positions. (Cast only; drawing is the caller's.)
       shadow_map_size: static shadow-map size in texels (used only by lights with shadows).
+      return_cloth_mask: also return the visible cloth coverage (H, W) in [0, 1]: the antialiased
+        cloth alpha (soft at silhouettes, so differentiable w.r.t. the geometry there) times the
+        part of each pixel not covered by a sphere or plane drawn in front. The image is unchanged.
     Shadows: lights whose `shadows` flag is set (see `make_lights`) are occluded by the cloth
       (plus `occluders`) through a shadow map and by `spheres` analytically, on the cloth, the
       spheres and the planes (`diffcloth.render.shadows`). Without shadow-casting lights no
@@ -308,6 +326,7 @@ def render(
     Returns:
       (H, W, 4) image: linear RGB (not clipped) and alpha = coverage. With a background the RGB is
       composited over it; the alpha channel still reports coverage of cloth, spheres and planes.
+      With return_cloth_mask: (image, cloth_mask).
     """
     if shading not in MODES:
         raise ValueError(f"shading must be one of {MODES}, got {shading!r}")
@@ -345,6 +364,7 @@ def render(
         # gathers, bump maps) would be recomputed for each neighbour and channel (with the
         # materializations in shade: minnaert render 265 -> 46 ms at 256^2, benchmarks/shading.py)
         img = antialias(materialize(img), buf)
+    cloth_mask = img[..., 3]
     if spheres is not None and draw_spheres:
         sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)
@@ -352,6 +372,7 @@ def render(
         over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
         under = img + (1.0 - img[..., 3:]) * sphere_rgba  # cloth over sphere
         img = jnp.where(front, over, under)
+        cloth_mask = jnp.where(front[..., 0], (1.0 - sphere_rgba[..., 3]) * cloth_mask, cloth_mask)
         depth = jnp.minimum(buf.depth, sphere_depth)
     else:
         depth = buf.depth
@@ -360,6 +381,7 @@ def render(
             camera, planes, lights, appearance, plane_color, maps
         )
         front = (plane_depth < depth)[..., None]
+        cloth_mask = jnp.where(front[..., 0], (1.0 - plane_rgba[..., 3]) * cloth_mask, cloth_mask)
         img = jnp.where(
             front,
             plane_rgba + (1.0 - plane_rgba[..., 3:]) * img,
@@ -368,4 +390,6 @@ def render(
     if background is not None:
         bg = jnp.reshape(jnp.asarray(background, img.dtype), (1, 1, 3))
         img = jnp.concatenate([img[..., :3] + (1.0 - img[..., 3:]) * bg, img[..., 3:]], axis=-1)
+    if return_cloth_mask:
+        return img, cloth_mask
     return img
