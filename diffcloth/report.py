@@ -192,6 +192,12 @@ def write_fit_report(
     if "compare" in paths:
         name = paths["compare"].name
         md += ["## Target | fit | difference", "", f"![compare]({name})", ""]
+    md += [
+        "3D viewer: [viewer.html](viewer.html) (a recording that opens offline; write it with "
+        f"`diffcloth view {out.as_posix()} --export {out.as_posix()}/viewer.html`, or browse live "
+        f"with `diffcloth view {out.as_posix()}`; needs the `view` extra).",
+        "",
+    ]
     if identifiability is not None:
         md += ["## Identifiability", "", format_identifiability(identifiability), ""]
     if extra_sections:

@@ -370,3 +370,23 @@ def test_exported_html_plays_offline(browser, model, tmp_path):
         assert not remote, remote
     finally:
         ctx.close()
+
+
+def test_fit_reports_link_the_viewer_recording(tmp_path):
+    from diffcloth.fit.loop import FitResult, History
+    from diffcloth.report import write_fit_report
+
+    n = 3
+    p = {"bend": np.array(1e-3)}
+    hist = History(
+        loss=np.geomspace(1.0, 1e-3, n), params={"bend": np.full(n, 1e-3)},
+        grad_norm={"bend": np.ones(n)}, wall_s=np.linspace(0.0, 1.0, n),
+    )  # fmt: skip
+    result = FitResult(
+        params=p, raw=p, loss=1e-3, initial=p, history=hist, iterations=n, wall_s=1.0,
+        status="max_steps", message="", best_step=n, last_finite=p,
+    )  # fmt: skip
+    out = tmp_path / "fit"
+    md = write_fit_report(out, result, plots=False)["report"].read_text()
+    assert "[viewer.html](viewer.html)" in md
+    assert f"diffcloth view {out.as_posix()} --export {out.as_posix()}/viewer.html" in md

@@ -173,6 +173,7 @@ class Viewer:
         self._pending_since: float | None = None
         self._cv = threading.Condition()
         self._render_request = threading.Event()
+        self._rendered: set[str] = set()  # shading modes compiled so far
         self.scene3d = _Scene3D(self.server, model)
         self._build_gui(autoplay, fps or min(60.0, 1.0 / max(model.dt, 1e-3)))
         self.scene3d.show(self.frame)
@@ -416,7 +417,11 @@ class Viewer:
                 continue
             self.image.image = img
             ms = 1e3 * (time.perf_counter() - t0)
-            self.render_note.content = f"{mode}, camera {cam}, frame {self.frame}: {ms:.0f} ms"
+            first = "" if mode in self._rendered else " (first use: includes the compile)"
+            self._rendered.add(mode)
+            self.render_note.content = (
+                f"{mode}, camera {cam}, frame {self.frame}: {ms:.0f} ms{first}"
+            )
 
     # ---- lifetime -----------------------------------------------------------------------------
     def serve_forever(self) -> None:
