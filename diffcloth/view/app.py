@@ -169,6 +169,7 @@ class Viewer:
         self.frame = model.num_frames - 1 if not autoplay else 0
         self.latencies: list[float] = []  # s, slider message -> new frame sent, per re-simulation
         self._stop = threading.Event()
+        self._stopped = False
         self._pending: dict = {}
         self._pending_since: float | None = None
         self._cv = threading.Condition()
@@ -425,16 +426,20 @@ class Viewer:
 
     # ---- lifetime -----------------------------------------------------------------------------
     def serve_forever(self) -> None:
-        """Block until Ctrl-C, then stop."""
+        """Block until Ctrl-C (or `stop()` from another thread), then stop."""
         try:
-            while True:
-                time.sleep(3600)
+            while not self._stop.wait(0.5):
+                pass
         except KeyboardInterrupt:
             pass
         finally:
             self.stop()
 
     def stop(self) -> None:
+        """Stop the worker threads and the server (idempotent)."""
+        if self._stopped:
+            return
+        self._stopped = True
         self._stop.set()
         with self._cv:
             self._cv.notify_all()

@@ -35,5 +35,9 @@ def run(args) -> int:
         return 0
     viewer = Viewer(model, host=args.host, port=args.port, autoplay=not args.paused)
     print(f"viewer at {viewer.url}  (Ctrl-C to stop)", flush=True)
-    viewer.serve_forever()
+    try:
+        viewer.serve_forever()
+    except KeyboardInterrupt:  # a second Ctrl-C while shutting down
+        viewer.stop()
+    print("viewer stopped")
     return 0

@@ -477,7 +477,7 @@ class ViewModel:
             wall = self._continue_from(frame, state, bodies, thrust)
             self._note(
                 f"re-simulation {self.resim_count}: thruster on body {body}, {accel:g} m/s^2 along "
-                f"{list(np.round(d, 3))} for {frames} frames after frame {frame} in "
+                f"{np.round(d, 3).tolist()} for {frames} frames after frame {frame} in "
                 f"{1e3 * wall:.0f} ms"
             )
             return wall
