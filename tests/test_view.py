@@ -389,4 +389,4 @@ def test_fit_reports_link_the_viewer_recording(tmp_path):
     out = tmp_path / "fit"
     md = write_fit_report(out, result, plots=False)["report"].read_text()
     assert "[viewer.html](viewer.html)" in md
-    assert f"diffcloth view {out.as_posix()} --export {out.as_posix()}/viewer.html" in md
+    assert "`diffcloth view DIR --export DIR/viewer.html`" in md

@@ -547,7 +547,7 @@ def load_view(path, *, level: int | None = None, size: int | None = None) -> Vie
         summary, fitted, loss = _read_fit(path)
         truth: dict[str, np.ndarray] = {}
         if "truth" in config.sections:
-            from diffcloth.experiment import parse_fit
+            from diffcloth.config.fit import parse_fit
 
             truth = dict(parse_fit(config.sections, path).truth)
         fit = FitData(path, fitted, truth, summary, loss)
