@@ -443,7 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--host", default="127.0.0.1", help="address to serve on (default: local only)")
     v.add_argument("--port", type=int, default=8080)
     v.add_argument("--export", metavar="HTML", help="write a self-contained recording instead")
-    v.add_argument("--side-by-side", action="store_true", help="--export: target beside the fit")
+    v.add_argument("--overlay", action="store_true", help="--export: a fit's target over the fit")
     v.add_argument("--level", type=int, default=None, help="tessellation level of the 3D cloth")
     v.add_argument("--size", type=int, default=256, help="image size of the render panel")
     v.add_argument("--paused", action="store_true", help="start paused at the last frame")

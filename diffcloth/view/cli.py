@@ -29,7 +29,7 @@ def run(args) -> int:
         return 2
     print(f"  ready in {time.perf_counter() - t0:.1f} s", flush=True)
     if args.export:
-        path = export_html(model, args.export, side_by_side=args.side_by_side)
+        path = export_html(model, args.export, side_by_side=not args.overlay)
         size = path.stat().st_size / 1e6
         print(f"wrote {path} ({size:.1f} MB): open it in a browser, no server or network needed")
         return 0
