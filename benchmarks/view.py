@@ -92,6 +92,10 @@ def main() -> None:
     rows = {"server_ms": server_ms, "resim_ms": resim_ms}
     if client_ms:
         rows["slider_to_frames_ms"] = client_ms
+    # the re-simulation per physics substep (tessellation included), to compare with the physics
+    # benchmark's idle figure for the same net (benchmarks/results/physics.jsonl)
+    steps = model.num_frames * model.scene.sim.num_substeps
+    base["resim_us_per_substep"] = round(1e3 * statistics.median(resim_ms) / steps, 1)
     for name, values in rows.items():
         print(
             json.dumps(

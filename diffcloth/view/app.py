@@ -207,7 +207,7 @@ class Viewer:
             f"**diffcloth** `{m.name}`: net {net[1]} x {net[0]}, {m.num_frames} frames, "
             f"{len(m.scene.bodies)} rigid bodies"
         )
-        self.status = gui.add_markdown(f"compiled in {m.compile_s:.1f} s")
+        self.status = gui.add_markdown(f"first simulation, with the compile: {m.compile_s:.1f} s")
         with gui.add_folder("Playback"):
             self.play = gui.add_checkbox("play", initial_value=autoplay)
             self.frame_slider = gui.add_slider(
