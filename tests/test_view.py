@@ -141,6 +141,21 @@ def test_cli_view_without_the_extra_says_how_to_install(monkeypatch, capsys, sce
     assert "pip install 'diffcloth[view]'" in err and "viser" in err
 
 
+def test_cli_view_export_and_bad_path(tmp_path, capsys, scene_path, model):
+    pytest.importorskip("viser", reason="the viewer needs the `view` extra: pip install viser")
+    from diffcloth import cli
+
+    out = tmp_path / "rec.html"
+    # same level and image size as the `model` fixture: the compiled function is reused
+    argv = ["view", str(scene_path), "--export", str(out), "--level", "6", "--size", "32"]
+    assert cli.main(argv + ["--no-cache"]) == 0
+    html = out.read_text()
+    assert "__VISER_EMBED_DATA__" in html and html.rstrip().endswith("</html>")
+    assert f"wrote {out}" in capsys.readouterr().out
+    assert cli.main(["view", str(tmp_path / "missing.toml"), "--no-cache"]) == 2
+    assert "no such config file or result folder" in capsys.readouterr().err
+
+
 # ---- the model: frames, re-simulation, forces, cameras, fit folders ------------------------------
 def test_frames_are_the_tessellated_collided_cloth(model):
     from diffcloth import surface

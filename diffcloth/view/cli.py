@@ -15,11 +15,12 @@ def run(args) -> int:
     from diffcloth.view.app import Viewer, export_html
     from diffcloth.view.model import load_view
 
-    handler = logging.StreamHandler(sys.stdout)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
     logger = logging.getLogger("diffcloth.view")
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
+    if not logger.handlers:  # the re-simulation log lines go to stdout
+        handler = logging.StreamHandler(sys.stdout)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
     print(f"diffcloth view {args.path}: simulating and compiling ...", flush=True)
     t0 = time.perf_counter()
     try:
