@@ -38,15 +38,18 @@ def _simulate(args) -> int:
     _check_positive("--chunk", args.chunk)
     _check_positive("--level", args.level, 2)
     config = load_config(args.config)
+    num_frames = config.sim.num_frames if args.frames is None else args.frames
+    memory.check_memory(
+        memory.estimate_memory(
+            memory.JobSizes.from_config(config, num_frames=num_frames), "simulate",
+            chunk=args.chunk,
+        ),
+        f"simulating {num_frames} frames of a {config.net.rows}x{config.net.cols} net",
+        hint="lower num_frames (--frames) or the net size",
+    )  # fmt: skip
     scene = build_physics(config)
     bodies, two_way = build_bodies(config)
-    num_frames = scene.num_frames if args.frames is None else args.frames
     net, sim, material = scene.net, scene.sim, scene.material
-    memory.check_memory(
-        memory.estimate_memory(_SizeView(scene, num_frames), "simulate", chunk=args.chunk),
-        f"simulating {num_frames} frames of a {net.rows}x{net.cols} net",
-        hint="lower num_frames (--frames) or the net size",
-    )
     out = OutputDir(args.out, overwrite=args.overwrite)
     print(
         f"diffcloth simulate {args.config}: net {net.rows}x{net.cols}, {num_frames} frames, "
@@ -137,13 +140,6 @@ def _simulate(args) -> int:
     return 0
 
 
-class _SizeView:
-    """What `memory.estimate_memory` reads of a scene, for a physics-only scene."""
-
-    def __init__(self, phys, num_frames):
-        self.material, self.net, self.num_frames = phys.material, phys.net, num_frames
-
-
 def _force_host_devices(n: int) -> None:
     """Let JAX's CPU backend expose `n` devices (no effect on GPUs), unless XLA_FLAGS already sets it.
 
@@ -176,17 +172,20 @@ def _render(args) -> int:
 
         raise UsageError(f"--fps must be in (0, 1000), got {args.fps}")
     config = load_config(args.config)
+    sizes = memory.JobSizes.from_config(config, size=args.size)
+    memory.check_memory(
+        memory.estimate_memory(sizes, "render", chunk=args.chunk),
+        f"rendering {sizes.num_frames // sizes.frame_stride} frames from {sizes.cameras} "
+        f"camera(s) at {sizes.width}x{sizes.height} (net {sizes.rows}x{sizes.cols})",
+        hint="lower the image size (--size, [render] width/height), --chunk, num_frames or the "
+        "net size",
+    )
     overrides = {}
     if args.size is not None:
         overrides.update(width=args.size, height=args.size)
     scene = build_scene(config, overrides=overrides or None)
     T, k = scene.num_frames, scene.frame_stride
     h, w = scene.image_shape
-    memory.check_memory(
-        memory.estimate_memory(scene, "render", chunk=args.chunk),
-        f"rendering {T // k} frames from {len(scene.cameras)} camera(s) at {w}x{h}",
-        hint="lower the image size (--size, [render] width/height), --chunk or num_frames",
-    )
     out = OutputDir(args.out, overwrite=args.overwrite)
     print(
         f"diffcloth render {args.config}: {T} frames (every {k}), {len(scene.cameras)} camera(s) "

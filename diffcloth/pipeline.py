@@ -31,6 +31,7 @@ __all__ = [
     "diagnose",
     "first_bad_frame",
     "param_value",
+    "params_in_range",
     "render_frames",
     "rendered_states",
     "simulate",
@@ -296,10 +297,29 @@ def render_frames(scene, xs: jax.Array, spheres=None) -> jax.Array:
     return jnp.moveaxis(frames, 0, 1)
 
 
+def params_in_range(scene) -> jax.Array:
+    """() bool, traceable: every parameter of the scene lies in PARAMETER_RANGES and is finite
+    (the traced twin of `check_param_values`: density 0 or stretch -40 passed inside jit)."""
+    ok = jnp.asarray(True)
+    for name, rng in PARAMETER_RANGES.items():
+        group = PARAMETERS[name][0]
+        if group == "bodies" and not scene.bodies:
+            continue
+        v = param_value(scene, name)
+        good = jnp.isfinite(v)
+        if rng.lo is not None:
+            good &= v >= rng.lo if rng.lo_inclusive else v > rng.lo
+        if rng.hi is not None:
+            good &= v <= rng.hi if rng.hi_inclusive else v < rng.hi
+        ok &= jnp.all(good)
+    return ok
+
+
 def trajectory_status(scene, traj, bodies=()) -> jax.Array:
-    """() bool, traceable: the cloth trajectory is finite and not blown up (`physics.frames_ok`,
-    which allows a long free fall), and every rigid body stays finite."""
-    ok = physics.trajectory_ok(scene.net, traj, scene.sim, scene.state)
+    """() bool, traceable: the parameters are in range (`params_in_range`), the cloth trajectory
+    is finite and not blown up (`physics.frames_ok`, which allows a long free fall), and every
+    rigid body stays finite."""
+    ok = physics.trajectory_ok(scene.net, traj, scene.sim, scene.state) & params_in_range(scene)
     for b in bodies:
         ok &= jnp.all(jnp.isfinite(b.position)) & jnp.all(jnp.isfinite(b.velocity))
     return ok
@@ -358,8 +378,9 @@ def simulate_and_render(scene, params=None) -> jax.Array:
     Returns:
       video (num_cameras, T, H, W, 3), linear RGB, T = num_frames // frame_stride: simulated
       frames k, 2k, ... for frame_stride k (the initial state is not drawn), or 0, k, 2k, ...
-      with scene.first_frame = 0 (see `rendered_states`). When the simulation
-      becomes non-finite or blows up the whole video is NaN, so a loss on it is NaN and a fit stops
+      with scene.first_frame = 0 (see `rendered_states`). When a parameter is out of range
+      (checked eagerly for concrete values, by `params_in_range` for traced ones) or the
+      simulation becomes non-finite or blows up, the whole video is NaN, so a loss on it is NaN and a fit stops
       with status "nonfinite"; a blow-up never comes out as a finite picture. Use
       `simulate_and_render_checked` for an explicit flag.
     """
@@ -385,10 +406,13 @@ def diagnose(scene, params=None) -> str | None:
     """
     from diffcloth.physics.rollout import ADVICE
 
-    scene = apply_params(scene, params)
     for name, value in (params or {}).items():
         if not np.all(np.isfinite(np.asarray(value))):
             return f"parameters: {name} = {np.asarray(value).tolist()} is not finite"
+    try:
+        scene = apply_params(scene, params)
+    except ValueError as err:
+        return f"parameters: {err}"
     traj, bodies = jax.jit(simulate_all)(scene)
     ok = np.asarray(physics.frames_ok(scene.net, traj, scene.sim, scene.state))
     for b in bodies:
