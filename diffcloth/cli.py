@@ -9,6 +9,42 @@ import time
 from pathlib import Path
 
 
+def check_config(path, command: str = "render"):
+    """The checks `diffcloth COMMAND CONFIG` runs before any work, without running it: the config
+    (ConfigError), the memory estimate (MemoryLimitError) and, for render and fit, the Scene and
+    the [truth]/[fit.initial] values against it. Returns the Scene (or the Config for simulate).
+    """
+    from diffcloth import memory
+    from diffcloth.config import ConfigError, load_config
+    from diffcloth.scene import build_scene
+
+    if command not in ("simulate", "render", "fit"):
+        raise ValueError(f"command={command!r}; allowed: simulate, render, fit")
+    config = load_config(path)
+    if command == "fit" and config.fit is None:
+        raise ConfigError(f"{path}: missing [fit] section")
+    multistart = config.fit.multistart if command == "fit" else 1
+    memory.check_memory(
+        memory.estimate_memory(memory.JobSizes.from_config(config), command,
+                               multistart=multistart),  # fmt: skip
+        f"{command} {path}",
+    )
+    if command == "simulate":
+        from diffcloth.config import build_physics
+        from diffcloth.scene import build_bodies
+
+        build_physics(config)
+        build_bodies(config)
+        return config
+    scene = build_scene(config)
+    if command == "fit":
+        from diffcloth.experiment import _check_values
+
+        _check_values(scene, config.fit.truth, "truth")
+        _check_values(scene, config.fit.initial, "fit.initial")
+    return scene
+
+
 def _err(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr, flush=True)
 
