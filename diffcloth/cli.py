@@ -479,14 +479,22 @@ def main(argv=None) -> int:
                 print(f"warning: compilation cache disabled ({err})", file=sys.stderr)
         return args.func(args)
     except KeyboardInterrupt:
+        _discard()
         if debug:
             raise
         print("\ninterrupted (nothing written)", file=sys.stderr)
         return 130
     except Exception as err:  # noqa: BLE001  (one line for the user; --debug for the trace)
+        _discard()
         if debug:
             raise
         return _report_error(err)
+
+
+def _discard() -> None:
+    from diffcloth.outdir import discard_all
+
+    discard_all()
 
 
 def _report_error(err: Exception) -> int:

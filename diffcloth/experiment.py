@@ -308,6 +308,11 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
                 result, status="interrupted", message=next(
                     r.message for r in multi.results if r.status == "interrupted")
             )  # fmt: skip
+    # the checkpoint ends up in out_dir, not in the temporary folder the messages name
+    result = dataclasses.replace(
+        result, message=result.message.replace(str(tmp), str(out.path)),
+        checkpoint_path=str(out.path / "checkpoint.npz"),
+    )  # fmt: skip
     interrupted = result.status == "interrupted"
     diagnosis = None
     if result.status == "nonfinite":  # name the stage where the values stopped being finite

@@ -168,7 +168,8 @@ def estimate_memory(sizes, job: str = "render", *, multistart: int = 1, chunk=No
         return int(traj + min(T, chunk or T) * nodes * 6 * b + step)
     frames = T // max(1, s.frame_stride)
     verts = (s.rows * s.level + 1) * (s.cols * s.level + 1)
-    per_frame = s.cameras * s.height * s.width * FLOATS_PER_PIXEL * b + verts * FLOATS_PER_VERTEX * b
+    pixels = s.cameras * s.height * s.width
+    per_frame = pixels * FLOATS_PER_PIXEL * b + verts * FLOATS_PER_VERTEX * b
     video = s.cameras * frames * s.height * s.width * 3 * b
     if job == "render":
         return int(traj + 2 * video + min(frames, chunk or 1) * per_frame + step)

@@ -18,7 +18,15 @@ import shutil
 import tempfile
 from pathlib import Path
 
-__all__ = ["OutputDir", "UsageError"]
+__all__ = ["OutputDir", "UsageError", "discard_all"]
+
+_LIVE: list = []  # OutputDirs not yet committed or discarded (the CLI drops them on any error)
+
+
+def discard_all() -> None:
+    """Discard every temporary folder not yet moved into place (after an error or Ctrl-C)."""
+    for d in list(_LIVE):
+        d.discard()
 
 
 class UsageError(ValueError):
@@ -64,6 +72,7 @@ class OutputDir:
         try:  # the real test of writability (permissions, read-only file systems, root or not)
             p.parent.mkdir(parents=True, exist_ok=True)
             self._tmp = Path(tempfile.mkdtemp(prefix=f".{p.name}.tmp-", dir=p.parent))
+            _LIVE.append(self)
         except OSError as err:
             raise UsageError(
                 f"{option} {str(p)!r}: cannot write next to it in {str(p.parent)!r} "
@@ -87,6 +96,8 @@ class OutputDir:
             os.replace(self.path, old)
         os.replace(tmp, self.path)
         self._tmp = None
+        if self in _LIVE:
+            _LIVE.remove(self)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         return self.path
@@ -96,3 +107,5 @@ class OutputDir:
         if self._tmp is not None:
             shutil.rmtree(self._tmp, ignore_errors=True)
             self._tmp = None
+        if self in _LIVE:
+            _LIVE.remove(self)

@@ -380,8 +380,8 @@ def simulate_and_render(scene, params=None) -> jax.Array:
       frames k, 2k, ... for frame_stride k (the initial state is not drawn), or 0, k, 2k, ...
       with scene.first_frame = 0 (see `rendered_states`). When a parameter is out of range
       (checked eagerly for concrete values, by `params_in_range` for traced ones) or the
-      simulation becomes non-finite or blows up, the whole video is NaN, so a loss on it is NaN and a fit stops
-      with status "nonfinite"; a blow-up never comes out as a finite picture. Use
+      simulation becomes non-finite or blows up, the whole video is NaN, so a loss on it is NaN
+      and a fit stops with status "nonfinite"; a blow-up never comes out as a finite picture. Use
       `simulate_and_render_checked` for an explicit flag.
     """
     video, ok = _simulate_and_render(scene, params)

@@ -4,8 +4,8 @@ allowed outcomes are a valid Scene or a ConfigError (MemoryLimitError for sizes 
 never a traceback from deeper code, never a silent NaN in the built scene."""
 
 import json
-import os
 import math
+import os
 import tomllib
 import warnings
 from pathlib import Path
@@ -130,7 +130,10 @@ def _outcome(fn):
             return err
 
 
-@settings(max_examples=int(os.environ.get("DIFFCLOTH_FUZZ_EXAMPLES", "40")), deadline=None, suppress_health_check=list(HealthCheck),
+EXAMPLES = int(os.environ.get("DIFFCLOTH_FUZZ_EXAMPLES", "40"))
+
+
+@settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck),
           derandomize=True)  # fmt: skip
 @given(case=mutated())
 def test_mutated_configs_give_a_scene_or_a_config_error(tmp_path_factory, case):
@@ -149,7 +152,7 @@ def test_mutated_configs_give_a_scene_or_a_config_error(tmp_path_factory, case):
             if a.dtype.kind == "f":
                 assert np.all(np.isfinite(a)), f"{name}: a non-finite value reached the Scene"
     for command in ("simulate", "render", "fit"):
-        _outcome(lambda: check_config(path, command))
+        _outcome(lambda command=command: check_config(path, command))
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])

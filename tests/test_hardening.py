@@ -244,8 +244,8 @@ def test_case3_sizes_are_refused_before_compiling_with_the_estimate(tmp_path, ca
     for cmd in ("render", "simulate", "fit"):
         code, out, err = run([cmd, many, "--out", str(tmp_path / cmd)], capsys)
         assert_usage_error(code, err, "num_frames", "integer")
-    huge = write(tmp_path, TINY.replace("rows = 4", "rows = 5000").replace("cols = 4", "cols = 5000")
-                 .replace("pinned = [[0, 0], [0, 3]]", 'pinned = "none"'), "huge.toml")  # fmt: skip
+    text = TINY.replace("rows = 4", "rows = 5000").replace("cols = 4", "cols = 5000")
+    huge = write(tmp_path, text.replace("pinned = [[0, 0], [0, 3]]", 'pinned = "none"'), "h.toml")
     code, out, err = run(["simulate", huge, "--out", str(tmp_path / "h"), "--frames", "100000"],
                          capsys)  # fmt: skip
     assert_usage_error(code, err, "5000x5000", "needs about")
@@ -430,7 +430,8 @@ def test_case7_targets_16_bit_exact_srgb_default_for_8_bit(tmp_path):
             write_png(tmp_path / name / f"f{i}.png", img)  # no colour chunk: the default rule
 
     def targets(extra, fname):
-        return load_targets(dc.config.load_config(write(tmp_path, TINY + FIT + extra, fname)).fit, sc)
+        config = dc.config.load_config(write(tmp_path, TINY + FIT + extra, fname))
+        return load_targets(config.fit, sc)
 
     v16 = targets('targets = "t16"\n', "a.toml")  # 16-bit: linear by default, every bit kept
     np.testing.assert_array_equal(np.round(v16[0, 0] * 65535).astype(np.uint16), img16)
@@ -473,7 +474,7 @@ def test_case8_params_table_is_the_configs_table():
     from diffcloth.physics.material import MATERIAL_FIELDS
     from diffcloth.pipeline import PARAMETER_RANGES, PARAMETERS
 
-    assert set(MATERIAL_FIELDS) <= set(PARAMETER_RANGES) and set(PARAMETER_RANGES) <= set(PARAMETERS)
+    assert set(MATERIAL_FIELDS) <= set(PARAMETER_RANGES) <= set(PARAMETERS)
     for name, (lo, inclusive, _, default) in MATERIAL_FIELDS.items():
         r = PARAMETER_RANGES[name]
         assert r.contains(default) and r.contains(lo) == inclusive
