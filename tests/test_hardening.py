@@ -189,6 +189,7 @@ class _SetAfter:
         return self.checks >= self.n
 
 
+@pytest.mark.slow  # three small fits: ~1 min on an idle 2-core machine
 def test_case2_interrupt_checkpoints_reports_exits_130_and_resume_matches(
     tmp_path, capsys, monkeypatch
 ):
@@ -400,6 +401,7 @@ def test_case5_results_are_protected(tmp_path, capsys):
 # ----------------------------------------------------------------------------- 6 NaN stop
 
 
+@pytest.mark.slow  # a fit plus the stage check's compilations
 def test_case6_nonfinite_stop_is_status_nonfinite_exit_1_strict_json(tmp_path, capsys):
     cfg = write(tmp_path, TINY + FIT.replace("steps = 4", "steps = 6\nlearning_rate = 200.0\n"
                                              'schedule = "constant"') + TRUTH)  # fmt: skip
@@ -537,3 +539,46 @@ def test_case10_long_free_fall_is_not_a_blow_up(tmp_path, capsys):
     assert not bool(dc.physics.trajectory_ok(sc.net, traj))  # the bare 1e5 m box would reject it
     code, out, err = run(["simulate", cfg, "--out", str(tmp_path / "o"), "--chunk", "5"], capsys)
     assert code == 0, err
+
+
+def test_first_frame_states_which_simulated_frame_image_0_shows(tmp_path):
+    """[render] first_frame = 1 (default): images show frames k, 2k, ... (the initial state is not
+    drawn); first_frame = 0: frames 0, k, 2k, ... The number of images is the same."""
+    from diffcloth import pipeline
+
+    text = BALL.replace("num_frames = 3", "num_frames = 6").replace("level = 2", "level = 2\n"
+                        "frame_stride = 2")  # fmt: skip
+    one = dc.load_scene(write(tmp_path, text, "one.toml"))
+    zero = dc.load_scene(write(tmp_path, text.replace("level = 2\n", "level = 2\nfirst_frame = 0\n"),
+                               "zero.toml"))  # fmt: skip
+    assert one.first_frame == 1 and zero.first_frame == 0
+    traj, bodies = pipeline.simulate_all(one)
+    xs1, sp1 = pipeline.rendered_states(one, traj, bodies)
+    xs0, sp0 = pipeline.rendered_states(zero, traj, bodies)
+    assert xs1.shape == xs0.shape == (3, 4, 4, 3)
+    np.testing.assert_array_equal(xs1, traj.x[1::2])  # frames 2, 4, 6
+    np.testing.assert_array_equal(xs0[0], zero.state.x)  # frame 0: the initial state
+    np.testing.assert_array_equal(xs0[1:], traj.x[1:4:2])  # frames 2, 4
+    np.testing.assert_array_equal(sp0.center[0, -1], zero.bodies[0].position)
+    np.testing.assert_array_equal(sp0.center[1:, -1], bodies[0].position[1:4:2])
+    np.testing.assert_array_equal(sp1.center[:, -1], bodies[0].position[1::2])
+
+
+def test_case6_report_of_a_nonfinite_fit_is_strict_json_with_status(tmp_path):
+    """The cheap half of case 6 (the CLI run is the slow test above): result.json carries the
+    status and metrics.jsonl writes null, never a bare NaN."""
+    from diffcloth.fit.loop import FitResult, History
+    from diffcloth.report import write_fit_report
+
+    h = History(loss=np.array([1.0, np.nan]), params={"bend": np.array([1.0, np.inf])},
+                grad_norm={"bend": np.array([1.0, np.nan])}, wall_s=np.array([0.0, 1.0]))
+    r = FitResult(params={"bend": np.array(1.0)}, raw={"bend": np.array(0.0)}, loss=1.0,
+                  initial={"bend": np.array(1.0)}, history=h, iterations=1, wall_s=1.0,
+                  status="nonfinite", message="non-finite loss/grad at step 1", best_step=0,
+                  last_finite={"bend": np.array(1.0)})  # fmt: skip
+    write_fit_report(tmp_path, r, plots=False)
+    assert json.loads((tmp_path / "result.json").read_text())["status"] == "nonfinite"
+    rows = [json.loads(line, parse_constant=lambda c: pytest.fail(f"bare {c}"))
+            for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]  # fmt: skip
+    assert rows[1]["loss"] is None and rows[1]["params"]["bend"] is None
+    assert "**nonfinite**" in (tmp_path / "report.md").read_text()
