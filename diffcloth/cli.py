@@ -334,6 +334,20 @@ def _fit(args) -> int:
     return 0
 
 
+def _view(args) -> int:
+    try:
+        from diffcloth.view.cli import run
+    except ImportError as err:
+        if (err.name or "").split(".")[0] != "viser":
+            raise
+        print(
+            "error: `diffcloth view` needs the viewer extra (viser): pip install 'diffcloth[view]'",
+            file=sys.stderr,
+        )
+        return 2
+    return run(args)
+
+
 BENCHMARKS = ("physics", "surface", "render", "shading", "rigid", "memory")
 
 
@@ -459,6 +473,16 @@ def build_parser() -> argparse.ArgumentParser:
         "overrides [fit] devices",
     )
     f.set_defaults(func=_fit)
+    v = sub.add_parser("view", parents=[cache], help="open a scene or fit result in the browser")
+    v.add_argument("path", help="scene TOML or fit result folder (see docs/viewer.md)")
+    v.add_argument("--host", default="127.0.0.1", help="address to serve on (default: local only)")
+    v.add_argument("--port", type=int, default=8080)
+    v.add_argument("--export", metavar="HTML", help="write a self-contained recording instead")
+    v.add_argument("--side-by-side", action="store_true", help="--export: target beside the fit")
+    v.add_argument("--level", type=int, default=None, help="tessellation level of the 3D cloth")
+    v.add_argument("--size", type=int, default=256, help="image size of the render panel")
+    v.add_argument("--paused", action="store_true", help="start paused at the last frame")
+    v.set_defaults(func=_view)
     return parser
 
 

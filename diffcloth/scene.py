@@ -42,6 +42,8 @@ class Scene:
       first_frame: static; 1 (default): the video's first image is the state after frame_stride
         frames (images show frames k, 2k, ..., the initial state is not drawn); 0: the first
         image is the initial state (frames 0, k, 2k, ...). The number of images is the same.
+      capture: optional `render.Capture`: per-camera exposure gain, small pose error and
+        background colour (None: gain 1, no pose error, `background` for every camera).
     """
 
     net: Any
@@ -64,6 +66,7 @@ class Scene:
     bodies: tuple = ()
     two_way: bool = dataclasses.field(default=True, metadata={"static": True})
     first_frame: int = dataclasses.field(default=1, metadata={"static": True})
+    capture: Any = None
 
     @property
     def image_shape(self) -> tuple[int, int]:

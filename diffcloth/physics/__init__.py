@@ -35,6 +35,12 @@ from diffcloth.physics.material import (
     to_raw,
     validate_material,
 )
+from diffcloth.physics.massspring import (
+    MASS_SPRING_FIELDS,
+    MassSpring,
+    make_mass_spring,
+    validate_mass_spring,
+)
 from diffcloth.physics.net import Net, grid_net, make_net
 from diffcloth.physics.rollout import (
     StabilityWarning,
@@ -83,6 +89,10 @@ __all__ = [
     "ClothState",
     "Contacts",
     "MATERIAL_FIELDS",
+    "MASS_SPRING_FIELDS",
+    "MassSpring",
+    "make_mass_spring",
+    "validate_mass_spring",
     "Material",
     "Net",
     "STEPS",
