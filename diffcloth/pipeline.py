@@ -127,8 +127,10 @@ def _parameter_ranges() -> dict[str, ParamRange]:
 
     table = {
         name: ParamRange(lo, None, inclusive, True, unit)
-        for name, (lo, inclusive, unit, _) in MATERIAL_FIELDS.items()
+        for fields in (MASS_SPRING_FIELDS, MATERIAL_FIELDS)
+        for name, (lo, inclusive, unit, _) in fields.items()
     }
+    table.update({name: ParamRange(lo, hi) for name, (lo, hi) in NUISANCE_RANGES.items()})
     table.update({name: ParamRange(0.0, None, False) for name in _POSITIVE})
     table.update({name: ParamRange(0.0) for name in _NONNEGATIVE})
     table.update(
@@ -408,7 +410,10 @@ def params_in_range(scene) -> jax.Array:
         group = PARAMETERS[name][0]
         if group == "bodies" and not scene.bodies:
             continue
-        v = param_value(scene, name)
+        try:
+            v = param_value(scene, name)
+        except ValueError:  # not a parameter of this scene (e.g. the other material model)
+            continue
         good = jnp.isfinite(v)
         if rng.lo is not None:
             good &= v >= rng.lo if rng.lo_inclusive else v > rng.lo
