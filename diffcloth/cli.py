@@ -492,6 +492,15 @@ def main(argv=None) -> int:
     interrupted. `--debug` shows the traceback instead."""
     args = build_parser().parse_args(argv)
     debug = getattr(args, "debug", False)
+    import warnings
+
+    shown = warnings.showwarning
+    if not debug:  # warnings as one line each, like the errors
+
+        def one_line(message, category, filename, lineno, file=None, line=None):
+            print(f"warning: {message}", file=sys.stderr, flush=True)
+
+        warnings.showwarning = one_line
     try:
         from diffcloth.runtime import cache_disabled, enable_compilation_cache
 
@@ -513,6 +522,8 @@ def main(argv=None) -> int:
         if debug:
             raise
         return _report_error(err)
+    finally:
+        warnings.showwarning = shown
 
 
 def _discard() -> None:

@@ -389,9 +389,11 @@ def test_case5_results_are_protected(tmp_path, capsys):
     code, _, err = run(["simulate", cfg, "--out", str(out)], capsys)
     assert_usage_error(code, err, "not empty", "--overwrite")
     assert (out / "trajectory.npz").read_bytes() == before
-    bad = write(tmp_path, TINY.replace("num_substeps = 20", "num_substeps = 1"), "bad.toml")
+    bad = write(tmp_path, TINY.replace("velocity = [0.0, 0.0, 0.0]", "velocity = [0.0, 3e38, 0]"),
+                "bad.toml")  # fmt: skip
     code, _, err = run(["simulate", bad, "--out", str(out), "--overwrite"], capsys)
-    assert code == 1 and (out / "trajectory.npz").read_bytes() == before  # failed rerun: intact
+    assert code == 1, err
+    assert (out / "trajectory.npz").read_bytes() == before  # a failed rerun leaves it intact
     assert run(["simulate", cfg, "--out", str(out), "--overwrite", "--frames", "2"], capsys)[0] == 0
     assert sorted(p.name for p in out.iterdir()) == ["trajectory.npz"]  # no stale file
     assert np.load(out / "trajectory.npz")["x"].shape[0] == 2
