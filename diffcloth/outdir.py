@@ -54,6 +54,13 @@ class OutputDir:
         self.option = option
         self._tmp: Path | None = None
         p = self.path
+        here = Path.cwd().resolve()
+        full = p.resolve()
+        if full == here or full in here.parents or full == Path.home().resolve():
+            raise UsageError(
+                f"{option} {str(path)!r} is the current folder, one of its parents or the home "
+                "folder; give a folder of its own for the results"
+            )
         if p.exists() and not p.is_dir():
             raise UsageError(f"{option} {str(p)!r} is an existing file; give a folder")
         if p.is_dir():

@@ -584,3 +584,12 @@ def test_case6_report_of_a_nonfinite_fit_is_strict_json_with_status(tmp_path):
             for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]  # fmt: skip
     assert rows[1]["loss"] is None and rows[1]["params"]["bend"] is None
     assert "**nonfinite**" in (tmp_path / "report.md").read_text()
+
+
+def test_case5_out_may_not_be_the_current_folder_or_a_parent(tmp_path, capsys, monkeypatch):
+    cfg = write(tmp_path, TINY)
+    monkeypatch.chdir(tmp_path)
+    for bad in (".", "..", str(tmp_path)):
+        code, out, err = run(["simulate", cfg, "--out", bad, "--overwrite"], capsys)
+        assert_usage_error(code, err, "current folder")
+    assert (tmp_path / "c.toml").exists()
