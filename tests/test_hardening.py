@@ -551,8 +551,8 @@ def test_first_frame_states_which_simulated_frame_image_0_shows(tmp_path):
     text = BALL.replace("num_frames = 3", "num_frames = 6").replace("level = 2", "level = 2\n"
                         "frame_stride = 2")  # fmt: skip
     one = dc.load_scene(write(tmp_path, text, "one.toml"))
-    zero = dc.load_scene(write(tmp_path, text.replace("level = 2\n", "level = 2\nfirst_frame = 0\n"),
-                               "zero.toml"))  # fmt: skip
+    text0 = text.replace("level = 2\n", "level = 2\nfirst_frame = 0\n")
+    zero = dc.load_scene(write(tmp_path, text0, "zero.toml"))
     assert one.first_frame == 1 and zero.first_frame == 0
     traj, bodies = pipeline.simulate_all(one)
     xs1, sp1 = pipeline.rendered_states(one, traj, bodies)
