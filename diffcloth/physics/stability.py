@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth.physics.forces import _total_forces, node_mass
+from diffcloth.physics.forces import _total_forces, autodiff_forces, node_mass
 from diffcloth.physics.material import Material
 from diffcloth.physics.net import Net
 
@@ -121,6 +121,11 @@ def _lanczos_top(matvec, n: int, steps: int, seed: int = 0):
 
 def modal_substep(net: Net, sim, material, *, steps: int = 50) -> float:
     """Stable substep (s) from the stiffest and the most damped mode at rest (see module doc)."""
+    with autodiff_forces():  # forward mode (jvp) through the forces
+        return _modal_substep(net, sim, material, steps=steps)
+
+
+def _modal_substep(net: Net, sim, material, *, steps: int) -> float:
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     free = ~np.asarray(net.pinned)
     mass = np.asarray(node_mass(net, material), np.float64)
