@@ -159,7 +159,7 @@ def render_frame(scene, x: jax.Array, spheres=None) -> jax.Array:
     spheres = scene.spheres if spheres is None else spheres
     surf = surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
     if spheres is not None:
-        surf = surface.collide_surface(surf, spheres)
+        surf = surface.collide_surface(surf, spheres, offset=scene.push_out_offset)
     images = [
         render.render(
             surf,

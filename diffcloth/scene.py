@@ -51,6 +51,8 @@ class Scene:
       num_frames, level, basis, shading, flip, frame_stride, background: static settings.
       bodies: tuple of `physics.RigidBody` simulated with the cloth (empty: cloth only).
       two_way: static; whether the cloth pushes back on the bodies.
+      push_out_offset: static, m >= 0; rendered vertices inside a sphere are pushed out to
+        radius + push_out_offset (cloth drawn that far outside the drawn sphere).
     """
 
     net: Any
@@ -72,6 +74,7 @@ class Scene:
     background: tuple = dataclasses.field(default=(0.05, 0.05, 0.08), metadata={"static": True})
     bodies: tuple = ()
     two_way: bool = dataclasses.field(default=True, metadata={"static": True})
+    push_out_offset: float = dataclasses.field(default=0.0, metadata={"static": True})
 
     @property
     def image_shape(self) -> tuple[int, int]:
