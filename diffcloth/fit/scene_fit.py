@@ -44,6 +44,12 @@ def default_constraint(name: str):
         return Bounded(0.0, 1.0)
     if name == "bump_strength":
         return Bounded(0.0, 10.0)
+    if name in ("light_direction", "point_light_position"):
+        return Identity()
+    if name in ("camera_rotation", "camera_translation", "background"):
+        from diffcloth.pipeline import NUISANCE_RANGES
+
+        return Bounded(*NUISANCE_RANGES[name])
     return Positive()
 
 
