@@ -107,7 +107,7 @@ def estimate_memory(
     """
     if job not in ("simulate", "render", "fit"):
         raise ValueError(f"job={job!r}; allowed: 'simulate', 'render', 'fit'")
-    b = 8 if str(scene.material.stretch.dtype) == "float64" else 4
+    b = 8 if str(scene.material.density.dtype) == "float64" else 4
     T = int(scene.num_frames if num_frames is None else num_frames)
     nodes = int(scene.net.rows) * int(scene.net.cols)
     traj = T * nodes * 6 * b  # x and v per frame

@@ -128,6 +128,13 @@ def _parameter_ranges() -> dict[str, ParamRange]:
         name: ParamRange(lo, None, inclusive, True, unit)
         for name, (lo, inclusive, unit, _) in MATERIAL_FIELDS.items()
     }
+    table.update(
+        {
+            name: ParamRange(lo, None, inclusive, True, unit)
+            for name, (lo, inclusive, unit, _) in MASS_SPRING_FIELDS.items()
+            if name not in table
+        }
+    )
     table.update({name: ParamRange(0.0, None, False) for name in _POSITIVE})
     table.update({name: ParamRange(0.0) for name in _NONNEGATIVE})
     table.update(

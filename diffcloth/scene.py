@@ -202,6 +202,7 @@ def build_scene(
         bodies=bodies,
         two_way=two_way,
         first_frame=rc.first_frame,
+        push_out_offset=rc.push_out_offset,
     )
 
 

@@ -399,3 +399,41 @@ def test_push_out_offset_places_vertices_outside_the_drawn_sphere():
     assert dist.min() == pytest.approx(0.31)
     g = jax.grad(lambda o: jnp.sum(collide_surface(surf, ball, offset=o).positions[:, 1]))(0.01)
     assert float(g) > 0
+
+
+# ----------------------------------------------------------------------------- config
+
+
+def test_provot_config_example_loads_and_bad_combinations_name_the_key():
+    from pathlib import Path
+
+    from diffcloth import config as cfg
+    from diffcloth.scene import load_scene
+
+    root = Path(__file__).resolve().parents[1]
+    sc = load_scene(root / "configs" / "drape_provot.toml", dtype=jnp.float64)
+    assert isinstance(sc.material, physics.MassSpring) and sc.material.lumping == "uniform"
+    assert float(sc.material.k_flex) == 20.0 and float(sc.material.air_damping) == 0.002
+    assert sc.sim.friction_rule == "coulomb" and float(sc.sim.collision_margin) == 0.005
+    assert sc.push_out_offset == 0.005
+    bad = [
+        ({"material": {"k_struct": 300.0}}, r"k_struct belong\(s\) to another model"),
+        ({"material": {"model": "provot", "bend": 1e-3}}, r"bend belong\(s\) to another model"),
+        ({"material": {"model": "provot", "k_flex": -1.0}}, r"k_flex = -1.0 .*\[0, inf\) N/m"),
+        ({"material": {"mass_lumping": "uniform"}}, "needs model = 'provot'"),
+        ({"material": {"model": "spring"}}, "model = 'spring'; allowed values"),
+        ({"sim": {"friction_rule": "sticky"}}, "friction_rule = 'sticky'"),
+        ({"sim": {"contact_thickness": 0.01, "collision_margin": 0.01}}, "same thing"),
+        ({"render": {"push_out_offset": -0.1}}, r"push_out_offset = -0.1 is out of range"),
+    ]
+    for data, match in bad:
+        with pytest.raises(cfg.ConfigError, match=match):
+            cfg.parse_config(data)
+    implicit = cfg.parse_config(
+        {"material": {"model": "provot"}, "sim": {"integrator": "implicit"}}
+    )
+    with pytest.raises(cfg.ConfigError, match="symplectic"):
+        cfg.build_physics(implicit)
+    cont = cfg.build_physics(cfg.parse_config({"sim": {"contact_thickness": 0.01}}))
+    assert isinstance(cont.material, physics.Material)
+    assert float(cont.sim.collision_margin) == 0.01
