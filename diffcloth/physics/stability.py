@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth.physics.forces import _total_forces, node_mass
+from diffcloth.physics.forces import _total_forces, autodiff_forces, node_mass
 from diffcloth.physics.material import Material
 from diffcloth.physics.net import Net
 
@@ -161,8 +161,9 @@ def modal_substep(net: Net, sim, material, *, steps: int = 50) -> float:
 
     n = scale.size
     k_op, c_op = op(0), op(1)
-    lam, u = _lanczos_top(k_op, n, steps)
-    gam, w = _lanczos_top(c_op, n, steps)
-    g_u = float(u @ c_op(u))
-    l_w = float(w @ k_op(w))
+    with autodiff_forces():  # forward mode through the stencil forces (no hand-written VJP)
+        lam, u = _lanczos_top(k_op, n, steps)
+        gam, w = _lanczos_top(c_op, n, steps)
+        g_u = float(u @ c_op(u))
+        l_w = float(w @ k_op(w))
     return min(_limit(lam, g_u), _limit(l_w, gam))
