@@ -10,10 +10,10 @@ and checks diffcloth's `physics.massspring` model. Only numpy and warp are impor
 
     python benchmarks/peers/warp_massspring.py            # a drape demo, prints one JSON line
 
-Model (every choice is written out in docs/physics.md, "Provot mass-spring"):
-- A flat rows x cols grid of point masses, columns along +x, rows along +z (plane "xz", horizontal,
-  at y = height) or rows downwards along -y (plane "xy", vertical, row 0 on top),
-  centred on (0, height, 0) in x/z (plus `center`). Node (i, j) sits at
+Model (every choice is discussed in docs/physics.md, beside diffcloth's own models):
+- A flat rows x cols grid of point masses, columns along +x, rows along +z (plane "xz", horizontal)
+  or rows downwards along -y (plane "xy", vertical, row 0 on top), centred at
+  (0, height, 0) + center (as diffcloth's `grid_net`). Node (i, j) sits at
   x = -w/2 + j w/(cols-1), z (or -y) = -h/2 + i h/(rows-1).
 - Masses: "uniform" (every node density * w * h / (rows cols)) or "area" (each cell gives a quarter
   of its area to each corner; node mass = density * that area).
