@@ -32,7 +32,9 @@ Model (every choice is discussed in docs/physics.md, beside diffcloth's own mode
   most (Coulomb, velocity level). The "displacement" rule first sets v = (x_projected - x_prev)/dt
   (x_prev: position before the drift), then applies the same rule.
 
-Parameters (`params` dict; all optional, defaults in DEFAULTS):
+Parameters (`params` dict; all optional, defaults in DEFAULTS). The model's names and defaults
+are those of diffcloth's `[material] model = "provot"` and `[sim]` keys (docs/config.md), so a
+config's values can be passed through unchanged:
   k_struct, k_shear, k_flex    spring stiffness, N/m
   d_struct, d_shear, d_flex    dashpot along each spring, N s/m
   air_damping                  linear air damping per node, N s/m
