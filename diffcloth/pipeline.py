@@ -158,7 +158,7 @@ def check_param_values(scene, params: Mapping) -> None:
     check_param_names(params)
     for name, value in params.items():
         old = param_value(scene, name)
-        shape = jnp.shape(value)
+        shape = np.shape(value)  # works for lists and tracers alike
         try:
             np.broadcast_shapes(shape, old.shape)
             ok_shape = np.broadcast_shapes(shape, old.shape) == tuple(old.shape)
