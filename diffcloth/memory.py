@@ -129,7 +129,7 @@ class JobSizes:
             rows=int(scene.net.rows), cols=int(scene.net.cols), height=int(h), width=int(w),
             cameras=len(scene.cameras), frame_stride=int(scene.frame_stride),
             level=int(scene.level),
-            float_bytes=8 if str(scene.material.stretch.dtype) == "float64" else 4,
+            float_bytes=8 if str(scene.material.density.dtype) == "float64" else 4,
         )  # fmt: skip
 
     @classmethod

@@ -327,7 +327,7 @@ def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False):
     spheres = scene.spheres if spheres is None else spheres
     surf = surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
     if spheres is not None:
-        surf = surface.collide_surface(surf, spheres)
+        surf = surface.collide_surface(surf, spheres, offset=scene.push_out_offset)
     capture = getattr(scene, "capture", None)
     images, masks = [], []
     for i, camera in enumerate(scene.cameras):
