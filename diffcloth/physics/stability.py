@@ -132,11 +132,6 @@ def _force_jvps(net, material, gravity, wind, dx, dv):
 
 def modal_substep(net: Net, sim, material, *, steps: int = 50) -> float:
     """Stable substep (s) from the stiffest and the most damped mode at rest (see module doc)."""
-    with autodiff_forces():  # forward mode (jvp) through the forces
-        return _modal_substep(net, sim, material, steps=steps)
-
-
-def _modal_substep(net: Net, sim, material, *, steps: int) -> float:
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     free = ~np.asarray(net.pinned)
     mass = np.asarray(node_mass(net, material), np.float64)
