@@ -40,7 +40,6 @@ import os
 import platform
 import re
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -77,6 +76,9 @@ LLVM_PATH = _pick_llvm()
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # benchmarks/_timing.py
+from _timing import timed  # noqa: E402
+
 from diffcloth import physics  # noqa: E402
 from diffcloth.config import build_physics, load_config  # noqa: E402
 from diffcloth.render import render  # noqa: E402
@@ -86,13 +88,7 @@ from diffcloth.surface import tessellate  # noqa: E402
 
 
 def _median(fn, repeats):
-    fn()  # warm-up (compile)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return timed(fn, repeats=repeats).median
 
 
 def draped_surface(seconds: float = 1.0):

@@ -31,12 +31,15 @@ import argparse
 import json
 import platform
 import sys
-import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # benchmarks/_timing.py
+from _timing import timed  # noqa: E402
 
 from diffcloth import physics
 from diffcloth.physics.net import bend_triplets, spring_list
@@ -222,13 +225,7 @@ class WarpCloth:
 
 
 def _median(fn, repeats):
-    fn()  # warm-up (compile)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return timed(fn, repeats=repeats).median
 
 
 def scene(rows, cols):
