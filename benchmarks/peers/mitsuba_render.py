@@ -37,7 +37,6 @@ import dataclasses
 import glob
 import json
 import os
-import platform
 import re
 import sys
 from pathlib import Path
@@ -77,6 +76,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # benchmarks/_timing.py
+from _timing import meta as _meta_line  # noqa: E402
 from _timing import timed  # noqa: E402
 
 from diffcloth import physics  # noqa: E402
@@ -307,16 +307,8 @@ def main(argv=None):
     parser.add_argument("--save-images", help="folder for render_images.npz (both images)")
     args = parser.parse_args(argv)
     repeats = 3 if args.quick else args.repeats
-    meta = dict(
-        bench="meta",
-        script="mitsuba_render",
-        machine=platform.processor() or platform.machine(),
-        python=sys.version.split()[0],
-        jax=jax.__version__,
-        mitsuba=mi.__version__,
-        drjit=dr.__version__,
-        libllvm=LLVM_PATH,
-        backend=jax.default_backend(),
+    meta = _meta_line(
+        "mitsuba_render", mitsuba=mi.__version__, drjit=dr.__version__, libllvm=LLVM_PATH
     )
     lines = [meta]
     print(json.dumps(meta), flush=True)
