@@ -461,6 +461,8 @@ def total_forces_fn(net: Net, material: Material, gravity, wind):
     The material-dependent frames are built once, here (call it outside a substep loop), and the
     forces carry the hand-written VJP (reverse mode only; see `autodiff_forces`).
     """
+    if hasattr(material, "total_forces_planar"):  # another force model (physics.massspring)
+        return lambda x, v: material.total_forces_planar(net, x, v, gravity, wind)
     mass_g = node_mass(net, material)[None] * gravity[:, None, None]
     if not _HAND_VJP[0]:
         return lambda x, v: _forces_planar(net, material, x, v, wind=wind) + mass_g
