@@ -153,7 +153,7 @@ def fit(
     if targets.ndim == 4 and len(scene.cameras) == 1:
         targets = targets[None]
     targets = validate_targets(targets, scene.video_shape, name="targets")
-    targets = jnp.asarray(targets, scene.material.stretch.dtype)
+    targets = jnp.asarray(targets, scene.material.density.dtype)
     init = {
         n: np.asarray(init[n] if init and n in init else pipeline.param_value(scene, n))
         for n in free

@@ -28,6 +28,7 @@ from diffcloth.render.spheres import raycast_spheres
 
 # shading (lights, appearance, textures, G-buffer shading modes); `shade` stays the module name
 from diffcloth.render.lights import Appearance, Light, Lights, make_appearance, make_lights
+from diffcloth.render.lights import appearance_fields
 from diffcloth.render.render import render, surface_gbuffer  # the function shadows its module
 from diffcloth.render.shade import MODES as SHADING_MODES
 from diffcloth.render.shade import ShadingBuffer, light_vertices
