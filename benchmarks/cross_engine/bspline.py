@@ -10,7 +10,7 @@ blending functions
 The surface does not pass through the net (it lies inside its convex hull). Normals are the
 normalised cross product of the two parametric derivatives. Vertices that end up inside a sphere
 (the spline cuts the curved contact region) are pushed out onto radius + offset, as a renderer of
-cloth on a ball must.
+cloth on a ball must, and take the sphere's normal (on their own side).
 """
 
 from __future__ import annotations
@@ -68,7 +68,11 @@ def surface(net, samples: int = 6, sphere=None, offset: float = 0.002):
         d = pos - c
         dist = np.linalg.norm(d, axis=-1)
         inside = dist < r + offset
-        pos[inside] = c + d[inside] / np.maximum(dist[inside, None], 1e-12) * (r + offset)
+        out = d[inside] / np.maximum(dist[inside, None], 1e-12)
+        pos[inside] = c + out * (r + offset)
+        # a pushed vertex lies on the sphere: its normal is the sphere's, on the old normal's side
+        side = np.sign(np.sum(out * nrm[inside], axis=-1, keepdims=True))
+        nrm[inside] = out * np.where(side == 0, 1.0, side)
     idx = np.arange(kr * kc).reshape(kr, kc)
     a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
     c_, d_ = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
