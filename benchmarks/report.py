@@ -23,6 +23,7 @@ RESULTS = HERE / "results"
 SCRIPTS = {
     "warp_cloth": HERE / "peers" / "warp_cloth.py",
     "mitsuba_render": HERE / "peers" / "mitsuba_render.py",
+    "mitsuba_agreement": HERE / "peers" / "mitsuba_agreement.py",
 }
 
 
@@ -219,6 +220,39 @@ def render_section(lines) -> list[str]:
     return out
 
 
+def agreement_section(lines) -> list[str]:
+    rows = [r for r in lines if r.get("bench") == "peers_mitsuba_agreement"]
+    if not rows:
+        return []
+    meta = _meta(lines)
+    out = [
+        "## Agreement with a path tracer: diffcloth vs Mitsuba 3 on the same draped frames",
+        "",
+        f"`benchmarks/peers/mitsuba_agreement.py`: frames {meta.get('frames')} of the "
+        "cross-engine drape (13 x 13 Provot cloth on a sphere above a floor, simulated by the "
+        "Warp reference, "
+        f"{meta.get('regime', '?')} regime), two cameras. Both renderers draw the same control "
+        "net (each with its own cubic B-spline evaluation), the sphere and the floor, with one "
+        "directional light (shadows on in both), ambient = Mitsuba's constant environment, "
+        "Lambertian albedos. Mitsuba: `direct` integrator, "
+        f"{meta.get('spp', '?')} spp, box filter. Mask = cloth-colour test (chromaticity within "
+        "0.1 of the cloth albedo's) in each image; RMSE over pixels that are cloth in both, "
+        "linear RGB. Aims: IoU >= 0.99, RMSE <= 0.02.",
+        "",
+        _table(
+            ["size", "diffcloth shadows", "IoU mean", "IoU min", "RMSE (cloth)",
+             "RMSE per frame", "cloth pixels"],
+            [
+                [f"{r['size']}^2", str(r["diffcloth_shadows"]), r["iou_mean"], r["iou_min"],
+                 r["rmse_cloth"], " / ".join(f"{v:.3f}" for v in r["rmse_per_frame"]),
+                 r["cloth_pixels"]]
+                for r in rows
+            ],
+        ),
+    ]  # fmt: skip
+    return out
+
+
 CAVEATS = [
     "## Caveats",
     "",
@@ -274,6 +308,7 @@ def summary(phys, rend) -> list[str]:
 
 def write(path: Path = HERE / "RESULTS.md") -> str:
     phys, rend = read("warp_cloth"), read("mitsuba_render")
+    agree = read("mitsuba_agreement")
     meta = _meta(phys) or _meta(rend)
     parts = [
         "# diffcloth vs peers",
@@ -288,6 +323,8 @@ def write(path: Path = HERE / "RESULTS.md") -> str:
         *physics_section(phys),
         "",
         *render_section(rend),
+        "",
+        *agreement_section(agree),
         "",
         *CAVEATS,
         "",

@@ -1,6 +1,6 @@
 """Generate the cross-engine targets: Warp physics (Provot mass-spring), Mitsuba 3 images.
 
-    python -m benchmarks.cross_engine.generate            # every case into benchmarks/cross_engine/data
+    python -m benchmarks.cross_engine.generate      # every case -> benchmarks/cross_engine/data
     python -m benchmarks.cross_engine.generate --cases drape:soft --spp 32
 
 For each (scene, regime) of `scenes.CASES`, one file data/<scene>_<regime>.npz holding

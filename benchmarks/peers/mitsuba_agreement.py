@@ -126,9 +126,12 @@ def main(argv=None):
     ap.add_argument("--regime", default="stiff", choices=sorted(S.REGIMES))
     ap.add_argument("--spp", type=int, default=128)
     ap.add_argument("--no-shadows", dest="shadows", action="store_false")
+    ap.add_argument("--quick", action="store_true", help="128^2 only, 2 frames, 64 spp")
     ap.add_argument("--out", help="also write the JSON lines to this file")
     ap.add_argument("--save-images", help="npz with both renderers' images")
     a = ap.parse_args(argv)
+    if a.quick:
+        a.sizes, a.frames, a.spp = [128], [20, 45], 64
     lines = []
 
     def emit(row):
@@ -155,7 +158,9 @@ def main(argv=None):
         dc_imgs = np.stack([np.asarray(frame(jnp.asarray(x, jnp.float32))) for x in nets], 1)
         t2 = time.perf_counter()
         ious, rmse, md, mm = compare(dc_imgs, mi_imgs)
-        per_frame = [compare(dc_imgs[:, i : i + 1], mi_imgs[:, i : i + 1]) for i in range(len(nets))]
+        per_frame = [
+            compare(dc_imgs[:, i : i + 1], mi_imgs[:, i : i + 1]) for i in range(len(nets))
+        ]
         emit(dict(
             bench="peers_mitsuba_agreement", size=size, frames=len(nets), cameras=mi_imgs.shape[0],
             diffcloth_shadows=shadowed, diffcloth_floor=planes,
