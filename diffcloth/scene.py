@@ -44,6 +44,8 @@ class Scene:
         image is the initial state (frames 0, k, 2k, ...). The number of images is the same.
       capture: optional `render.Capture`: per-camera exposure gain, small pose error and
         background colour (None: gain 1, no pose error, `background` for every camera).
+      push_out_offset: static, m >= 0; rendered vertices inside a sphere are pushed out to
+        radius + push_out_offset (cloth drawn that far outside the drawn sphere).
     """
 
     net: Any
@@ -67,6 +69,7 @@ class Scene:
     two_way: bool = dataclasses.field(default=True, metadata={"static": True})
     first_frame: int = dataclasses.field(default=1, metadata={"static": True})
     capture: Any = None
+    push_out_offset: float = dataclasses.field(default=0.0, metadata={"static": True})
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -199,6 +202,7 @@ def build_scene(
         bodies=bodies,
         two_way=two_way,
         first_frame=rc.first_frame,
+        push_out_offset=rc.push_out_offset,
         capture=_build_capture(config.cameras, rc, dtype),
     )
 

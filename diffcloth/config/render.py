@@ -38,6 +38,7 @@ class RenderConfig:
     flip: bool = True
     textures: str = "none"
     first_frame: int = 1
+    push_out_offset: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +101,7 @@ def parse_render(t: Mapping[str, Any]) -> RenderConfig:
         flip=get_bool(t, "flip", d.flip, where=w),
         textures=get_choice(t, "textures", d.textures, TEXTURE_CHOICES, where=w),
         first_frame=get_number(t, "first_frame", d.first_frame, where=w, lo=0, hi=1, integer=True),
+        push_out_offset=get_number(t, "push_out_offset", d.push_out_offset, where=w, lo=0),
     )
 
 

@@ -6,7 +6,7 @@ bodies, the pipeline) can call inside its own `lax.scan`:
     step(net, sim, material, state, colliders=None, *, pin_target=None) -> ClothState
 
 - symplectic: semi-implicit (symplectic) Euler, v += h f(x, v) / m; x += h v. Conditionally stable:
-  h below about 2 sqrt(m_min / k_max) (see `rollout.stable_substep`).
+  h below the limit of `rollout.stable_substep` (docs/physics.md, "Stability estimate").
 - implicit: backward Euler in the velocity, m (v' - v) = h f(x + h v', v'), solved by Newton with
   matrix-free conjugate gradients on a positive semi-definite Newton matrix. Its gradient is taken
   implicitly (`jax.lax.custom_root`, BiCGSTAB on the exact linearisation), not through the iterations.
