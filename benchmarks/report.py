@@ -23,6 +23,7 @@ RESULTS = HERE / "results"
 SCRIPTS = {
     "warp_cloth": HERE / "peers" / "warp_cloth.py",
     "mitsuba_render": HERE / "peers" / "mitsuba_render.py",
+    "mitsuba_agreement": HERE / "peers" / "mitsuba_agreement.py",
 }
 
 
@@ -219,6 +220,49 @@ def render_section(lines) -> list[str]:
     return out
 
 
+def agreement_section(lines) -> list[str]:
+    rows = [r for r in lines if r.get("bench") == "peers_mitsuba_agreement"]
+    if not rows:
+        return []
+    meta = _meta(lines)
+    out = [
+        "## Agreement with a path tracer: diffcloth vs Mitsuba 3 on the same draped frames",
+        "",
+        f"`benchmarks/peers/mitsuba_agreement.py`: frames {meta.get('frames')} of the "
+        "cross-engine drape (13 x 13 Provot cloth on a sphere above a floor, simulated by the "
+        "Warp reference, "
+        f"{meta.get('regime', '?')} regime), two cameras. Both renderers draw the same control "
+        "net (each with its own cubic B-spline evaluation), the sphere and the floor, with one "
+        "directional light (shadows on in both), ambient = Mitsuba's constant environment, "
+        "Lambertian albedos. Mitsuba: `direct` integrator, "
+        f"{meta.get('spp', '?')} spp, box filter. Mask = cloth-colour test (chromaticity within "
+        "0.1 of the cloth albedo's) in each image; RMSE over pixels that are cloth in both, "
+        "linear RGB. Aims: IoU >= 0.99, RMSE <= 0.02.",
+        "",
+        _table(
+            ["size", "diffcloth shadows", "IoU mean", "IoU min", "RMSE (cloth)",
+             "RMSE per frame", "cloth pixels"],
+            [
+                [f"{r['size']}^2", str(r["diffcloth_shadows"]), r["iou_mean"], r["iou_min"],
+                 r["rmse_cloth"], " / ".join(f"{v:.3f}" for v in r["rmse_per_frame"]),
+                 r["cloth_pixels"]]
+                for r in rows
+            ],
+        ),
+        "",
+        "Every pixel on which the two cloth masks disagree lies on the silhouette (one-pixel "
+        "band; checked on the saved images): the colour test cuts a mixed pixel at about 70 % "
+        "cloth, and diffcloth's analytic edge blend (nvdiffrast-style, exact only for straight "
+        "edges and one blend per pixel pair) and Mitsuba's box-filtered coverage put that cut a "
+        "fraction of a pixel apart, so the IoU gap halves from 128^2 to 256^2. The RMSE keeps "
+        "the parts no rasterizer has: Mitsuba's environment is occluded (ambient occlusion in "
+        "creases and under the cloth), diffcloth's ambient term is not; diffcloth's shadow map "
+        "has soft (percentage-closer) edges where the directional light's are hard; plus the "
+        "reference's Monte Carlo noise.",
+    ]  # fmt: skip
+    return out
+
+
 CAVEATS = [
     "## Caveats",
     "",
@@ -373,6 +417,7 @@ def perf_section() -> list[str]:
 
 def write(path: Path = HERE / "RESULTS.md") -> str:
     phys, rend = read("warp_cloth"), read("mitsuba_render")
+    agree = read("mitsuba_agreement")
     meta = _meta(phys) or _meta(rend)
     parts = [
         "# diffcloth vs peers",
@@ -389,6 +434,8 @@ def write(path: Path = HERE / "RESULTS.md") -> str:
         *render_section(rend),
         "",
         *perf_section(),
+        *agreement_section(agree),
+        "",
         *CAVEATS,
         *load_note(
             ("warp_cloth", phys),

@@ -214,6 +214,19 @@ def build_scene(
         draw_planes=rc.draw_planes,
         plane_color=tuple(rc.plane_color),
         shadow_map_size=rc.shadow_map_size,
+        capture=_build_capture(config.cameras, rc, dtype),
+    )
+
+
+def _build_capture(cameras, rc, dtype):
+    """A render.Capture when a camera sets its own background or exposure, else None."""
+    if all(c.background is None and c.exposure == 1.0 for c in cameras):
+        return None
+    return render.make_capture(
+        len(cameras),
+        exposure=[c.exposure for c in cameras],
+        background=[rc.background if c.background is None else c.background for c in cameras],
+        dtype=dtype,
     )
 
 
