@@ -19,12 +19,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import emit, meta, timed
 
 from diffcloth.render import lights as Lm
 from diffcloth.render import textures as T
@@ -42,17 +41,12 @@ def seed_surface():
     return tessellate(jnp.asarray(np.stack([x, y, z], -1), jnp.float32), 13)
 
 
-def timed(fn, *args, repeats):
-    jax.block_until_ready(fn(*args))  # compile
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return round(1e3 * statistics.median(times), 2)
+def _timed_ms(fn, *args, repeats):
+    return round(timed(fn, *args, repeats=repeats).median * 1e3, 2)
 
 
 def main():
+    emit(meta("shading"))
     parser = argparse.ArgumentParser()
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=5)
@@ -96,15 +90,17 @@ def main():
             "size": size,
             "vertices": int(surf.positions.shape[0]),
         }
-        row["shade_fwd_ms"] = timed(jax.jit(shade_fn), gb, eye, lights, app, repeats=args.repeats)
+        row["shade_fwd_ms"] = _timed_ms(
+            jax.jit(shade_fn), gb, eye, lights, app, repeats=args.repeats
+        )
         if not args.no_grad:
             g = jax.jit(jax.value_and_grad(shade_loss))
-            row["shade_grad_ms"] = timed(g, (lights, app), gb, eye, repeats=args.repeats)
+            row["shade_grad_ms"] = _timed_ms(g, (lights, app), gb, eye, repeats=args.repeats)
         if not args.no_render:
-            row["render_fwd_ms"] = timed(jax.jit(render_fn), lights, app, repeats=args.repeats)
+            row["render_fwd_ms"] = _timed_ms(jax.jit(render_fn), lights, app, repeats=args.repeats)
             if not args.no_grad:
                 g = jax.jit(jax.value_and_grad(render_loss))
-                row["render_grad_ms"] = timed(g, (lights, app), repeats=args.repeats)
+                row["render_grad_ms"] = _timed_ms(g, (lights, app), repeats=args.repeats)
         row["device"] = device
         print(json.dumps(row), flush=True)
     shadow_cases(args, surf, cam, app, tex, spheres, weights, device)

@@ -38,6 +38,7 @@ class RenderConfig:
     flip: bool = True
     textures: str = "none"
     first_frame: int = 1
+    push_out_offset: float = 0.0
     draw_planes: bool = False
     plane_color: tuple = (0.6, 0.6, 0.6)
     shadow_map_size: int = 256
@@ -54,6 +55,8 @@ class CameraConfig:
     projection: str = "perspective"
     near: float = 0.1
     far: float = 100.0
+    background: tuple[float, float, float] | None = None  # None: the [render] background
+    exposure: float = 1.0  # gain on this camera's whole image
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,6 +108,7 @@ def parse_render(t: Mapping[str, Any]) -> RenderConfig:
         flip=get_bool(t, "flip", d.flip, where=w),
         textures=get_choice(t, "textures", d.textures, TEXTURE_CHOICES, where=w),
         first_frame=get_number(t, "first_frame", d.first_frame, where=w, lo=0, hi=1, integer=True),
+        push_out_offset=get_number(t, "push_out_offset", d.push_out_offset, where=w, lo=0),
         draw_planes=get_bool(t, "draw_planes", d.draw_planes, where=w),
         plane_color=tuple(get_vec3(t, "plane_color", d.plane_color, where=w)),
         shadow_map_size=get_number(
@@ -130,7 +134,13 @@ def _parse_camera(t: Mapping[str, Any], where: str) -> CameraConfig:
         projection=get_choice(t, "projection", d.projection, PROJECTION_KINDS, where=where),
         near=get_number(t, "near", d.near, where=where, lo=0, lo_inclusive=False),
         far=get_number(t, "far", d.far, where=where, lo=0, lo_inclusive=False),
+        background=get_vec3(t, "background", where=where) if "background" in t else None,
+        exposure=get_number(t, "exposure", d.exposure, where=where, lo=0, lo_inclusive=False),
     )
+    if cam.background is not None and not all(0.0 <= v <= 1.0 for v in cam.background):
+        raise ConfigError(
+            f"[{where}] background = {list(cam.background)} must be linear RGB in [0, 1]"
+        )
     if cam.far <= cam.near:
         raise ConfigError(f"[{where}] far = {cam.far} must be larger than near = {cam.near}")
     view = [e - g for e, g in zip(cam.eye, cam.target, strict=True)]

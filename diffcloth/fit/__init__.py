@@ -31,7 +31,11 @@ from diffcloth.fit.loop import (
     fit_multistart,
     fit_params,
     load_checkpoint,
+    pack_tree,
+    save_checkpoint,
+    unpack_tree,
 )
+from diffcloth.fit.interrupt import catch_interrupts
 from diffcloth.fit.scene_fit import (
     LOSSES,
     default_constraint,
@@ -104,6 +108,10 @@ __all__ = [
     "identifiability",
     "image_loss",
     "load_checkpoint",
+    "pack_tree",
+    "save_checkpoint",
+    "unpack_tree",
+    "catch_interrupts",
     "make_constraint",
     "make_constraints",
     "pyramid_loss",
