@@ -266,8 +266,8 @@ def agreement_section(lines) -> list[str]:
 CAVEATS = [
     "## Caveats",
     "",
-    "- 2-core machine, nothing else running; medians (15 calls for the renderers, fewer for the "
-    "slow gradients), which still move by 10-20 % between runs. Rerun with "
+    "- 2-core machine; medians (15 calls for the renderers, fewer for the slow gradients), which "
+    "move by 10-20 % between runs even on an idle machine. Rerun with "
     "`python benchmarks/report.py --run`.",
     "- Mitsuba's forward pass comes in two columns: with the vertex positions of the previous "
     "call (its acceleration structure is reused: a static scene) and with new positions (set "
@@ -316,6 +316,105 @@ def summary(phys, rend) -> list[str]:
     return out
 
 
+def load_note(*groups) -> list[str]:
+    """Say how loaded the machine was, from the meta lines' 1-minute load averages."""
+    notes = []
+    for name, lines in groups:
+        m = _meta(lines)
+        if m.get("load_1min") is not None:
+            notes.append(f"{name} {m['load_1min']} ({m.get('utc', '?')})")
+    if not notes:
+        return []
+    return [
+        "- Load at the start of each run (1-minute load average on "
+        f"{_meta(groups[0][1]).get('cpus', '?')} cores): " + ", ".join(notes) + ". Above ~2 the "
+        "machine was shared (other sessions were compiling and testing): absolute times are then "
+        "inflated and noisy, and only the same-run ratios mean something."
+    ]
+
+
+def perf_section() -> list[str]:
+    """The interactive frame and fit step benchmarks (issue 16), when their JSON lines exist."""
+    inter, fit = read("interactive"), read("fit_step")
+    out = []
+    rows = [r for r in inter if r.get("bench") == "interactive"]
+    if rows:
+        out += [
+            "## Interactive frame (default scene, 256 x 256, level 13)",
+            "",
+            "`benchmarks/interactive.py`: one frame of `configs/drape.toml` (40 substeps with "
+            "colliders, tessellation to 11,830 vertices, surface collision, render with the "
+            "scene's sphere), the whole frame jitted as one function; stage columns time each "
+            "stage jitted alone.",
+            "",
+            _table(
+                [
+                    "mode",
+                    "frame (ms)",
+                    "fps",
+                    "aim fps",
+                    "physics",
+                    "tessellate",
+                    "collide",
+                    "render",
+                ],
+                [
+                    [
+                        r["mode"],
+                        r["frame_ms"],
+                        r["fps"],
+                        r["aim_fps"],
+                        r["physics_ms"],
+                        r["tessellate_ms"],
+                        r["collide_ms"],
+                        r["render_ms"],
+                    ]
+                    for r in rows
+                ],
+            ),
+            "",
+        ]
+    rows = [r for r in fit if r.get("bench") == "fit_step"]
+    if rows:
+        ratios = {r["config"]: r for r in fit if r.get("bench") == "fit_step_ratio"}
+        out += [
+            "## Fit step, before and after (same run)",
+            "",
+            "`benchmarks/fit_step.py`: value and gradient of the fit loss of each config at its "
+            "initial parameters, each commit in a fresh process with the compilation cache off.",
+            "",
+            _table(
+                [
+                    "config",
+                    "tree",
+                    "commit",
+                    "compile (s)",
+                    "forward (ms)",
+                    "step (ms)",
+                    "backward (ms)",
+                    "step ratio",
+                ],
+                [
+                    [
+                        r["config"],
+                        r["tree"],
+                        r["commit"],
+                        r["compile_s"],
+                        r["forward_ms"],
+                        r["step_ms"],
+                        r["backward_ms"],
+                        ratios.get(r["config"], {}).get("step_ratio")
+                        if r["tree"] == "new"
+                        else None,
+                    ]
+                    for r in rows
+                ],
+            ),
+            "",
+        ]
+    return out
+
+
 def write(path: Path = HERE / "RESULTS.md") -> str:
     phys, rend = read("warp_cloth"), read("mitsuba_render")
     agree = read("mitsuba_agreement")
@@ -334,9 +433,16 @@ def write(path: Path = HERE / "RESULTS.md") -> str:
         "",
         *render_section(rend),
         "",
+        *perf_section(),
         *agreement_section(agree),
         "",
         *CAVEATS,
+        *load_note(
+            ("warp_cloth", phys),
+            ("mitsuba_render", rend),
+            ("interactive", read("interactive")),
+            ("fit_step", read("fit_step")),
+        ),
         "",
     ]
     text = "\n".join(parts)

@@ -329,6 +329,13 @@ def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False):
     if spheres is not None:
         surf = surface.collide_surface(surf, spheres, offset=scene.push_out_offset)
     capture = getattr(scene, "capture", None)
+    planes = None
+    if getattr(scene, "draw_planes", False) and scene.colliders is not None:
+        planes = split_colliders(scene.colliders)[0]
+    # shadow maps of this frame, shared by every camera (None when no light casts shadows)
+    maps = render.frame_shadow_maps(
+        surf, scene.lights, spheres=spheres, size=getattr(scene, "shadow_map_size", 256)
+    )
     images, masks = [], []
     for i, camera in enumerate(scene.cameras):
         background = scene.background
@@ -345,6 +352,9 @@ def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False):
             textures=scene.textures,
             background=background,
             return_cloth_mask=True,
+            planes=planes,
+            plane_color=getattr(scene, "plane_color", render.PLANE_COLOR),
+            shadow_maps=maps,
         )
         img = img[..., :3]
         if capture is not None:

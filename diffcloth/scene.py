@@ -46,6 +46,9 @@ class Scene:
         background colour (None: gain 1, no pose error, `background` for every camera).
       push_out_offset: static, m >= 0; rendered vertices inside a sphere are pushed out to
         radius + push_out_offset (cloth drawn that far outside the drawn sphere).
+      draw_planes, plane_color: static; draw the plane colliders as matte ground of that linear
+        albedo (shadow receivers).
+      shadow_map_size: static shadow-map size of the lights with shadows (texels).
     """
 
     net: Any
@@ -70,6 +73,9 @@ class Scene:
     first_frame: int = dataclasses.field(default=1, metadata={"static": True})
     capture: Any = None
     push_out_offset: float = dataclasses.field(default=0.0, metadata={"static": True})
+    draw_planes: bool = dataclasses.field(default=False, metadata={"static": True})
+    plane_color: tuple = dataclasses.field(default=(0.6, 0.6, 0.6), metadata={"static": True})
+    shadow_map_size: int = dataclasses.field(default=256, metadata={"static": True})
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -113,6 +119,8 @@ def _build_lights(lc: cfg.LightsConfig, dtype):
             ambient=lc.ambient,
             directional=tuple((d.direction, d.color, d.intensity) for d in lc.directional),
             point=tuple((p.position, p.color, p.intensity) for p in lc.point),
+            shadows=[d.shadows for d in lc.directional] + [p.shadows for p in lc.point],
+            softness=[d.softness for d in lc.directional] + [p.softness for p in lc.point],
             dtype=dtype,
         )
     except ValueError as err:
@@ -203,6 +211,9 @@ def build_scene(
         two_way=two_way,
         first_frame=rc.first_frame,
         push_out_offset=rc.push_out_offset,
+        draw_planes=rc.draw_planes,
+        plane_color=tuple(rc.plane_color),
+        shadow_map_size=rc.shadow_map_size,
         capture=_build_capture(config.cameras, rc, dtype),
     )
 

@@ -29,6 +29,7 @@ from diffcloth.physics.forces import (
     from_planar,
     node_mass,
     to_planar,
+    total_forces_fn,
 )
 from diffcloth.physics.material import Material
 from diffcloth.physics.net import Net
@@ -256,9 +257,11 @@ def step_with_contacts(
     zeros_pi = jnp.zeros((n_p, 3), dtype)
     if sim.integrator == "symplectic":
         safe_mass = jnp.where(free, mass, 1.0)[None]
+        # material-dependent stencil frames built once per frame, outside the substep loop
+        forces = total_forces_fn(net, material, sim.gravity, sim.wind)
 
         def kick(x, v):
-            return v + h * _total_forces(net, material, x, v, sim.gravity, sim.wind) / safe_mass
+            return v + h * forces(x, v) / safe_mass
 
         # Kick-drift order with the drift first in the loop body: iteration s drifts substep s - 1
         # (x += h v, pins, colliders) and then kicks substep s. Each loop output then depends on the
