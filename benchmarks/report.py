@@ -391,7 +391,7 @@ def perf_section() -> list[str]:
                     "config",
                     "tree",
                     "commit",
-                    "compile (s)",
+                    "first call (s)",
                     "forward (ms)",
                     "step (ms)",
                     "backward (ms)",
