@@ -1,6 +1,6 @@
 """Same-process A/B of one fit step: stencil forces with the hand-written VJP vs JAX autodiff.
 
-    python benchmarks/fit_step_ab.py   # configs/experiments/drape_material.toml, 3 alternating rounds
+    python benchmarks/fit_step_ab.py   # drape_material.toml, 3 alternating rounds
 
 Prints {"hand_vjp", "round", "step_ms"} lines (value_and_grad of the fit loss, median of 3).
 """
@@ -10,7 +10,7 @@ import sys
 import tomllib
 from pathlib import Path
 
-sys.path.insert(0, "benchmarks")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 import jax
 import jax.numpy as jnp
 from _timing import timed
@@ -20,7 +20,7 @@ from diffcloth.fit.scene_fit import make_targets, video_loss
 from diffcloth.physics import forces as F
 from diffcloth.scene import load_scene
 
-path = Path("configs/experiments/drape_material.toml")
+path = Path(__file__).resolve().parent.parent / "configs/experiments/drape_material.toml"
 raw = tomllib.loads(path.read_text())
 fit = raw["fit"]
 scene = load_scene(path)
