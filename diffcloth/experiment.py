@@ -30,6 +30,11 @@ from diffcloth import config as cfg
 
 __all__ = ["FitSettings", "parse_fit", "run_fit_config", "video_strip"]
 
+_METHOD_NAMES = {
+    "lm": "Levenberg-Marquardt (optimistix, forward-mode Jacobians, coarse-to-fine stages)",
+    "adam": "Adam (optax)",
+}
+
 
 @dataclasses.dataclass(frozen=True)
 class FitSettings:
@@ -48,6 +53,9 @@ class FitSettings:
     targets: str | None = None
     initial: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     truth: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    method: str = "auto"
+    ties: Mapping[str, Any] | None = None
+    lm_schedule: Any = None
 
 
 _BODY_RANGES = {  # name -> (lo, hi, allowed range as text); mass excludes 0
@@ -183,6 +191,27 @@ def _display(video) -> np.ndarray:
     return np.clip(np.asarray(video), 0.0, 1.0) ** (1.0 / 2.2)
 
 
+def _method_section(result, settings) -> str:
+    """report.md: which method ran, its stages and evaluation count."""
+    text = f"{_METHOD_NAMES[result.method]}"
+    text += " (chosen by method = \"auto\")" if settings.method == "auto" else ""
+    text += f"; {result.evaluations} loss/Jacobian evaluations." if result.evaluations else "."
+    if result.stages:
+        text += "\n\n| stage | LM steps | final loss of the stage | status |\n|---|---|---|---|\n"
+        text += "\n".join(
+            f"| {st['name']} | {st['steps']} | {st['loss']:.4g} | {st['status']} |"
+            for st in result.stages
+        )
+        text += (
+            "\n\nStages are coarse to fine (pyramid levels from the coarsest, then a frame window "
+            "growing to all frames), each warm-started from the previous one; the losses of "
+            "different stages weight the pixels differently and do not compare."
+        )
+    if getattr(result, "ties", None):
+        text += f"\n\nTied parameters (not optimised): {result.ties.describe()}."
+    return text
+
+
 def run_fit_config(
     config_path,
     out_dir,
@@ -229,12 +258,29 @@ def run_fit_config(
         targets = np.asarray(
             dcfit.make_targets(sc, settings.truth, noise=settings.noise, seed=settings.seed)
         )
-    import optax
+    from diffcloth.fit.lm import num_scalars
+    from diffcloth.fit.scene_fit import choose_method
 
-    rate = settings.learning_rate
-    if settings.schedule == "cosine":
-        rate = optax.cosine_decay_schedule(rate, settings.steps, alpha=0.1)
-    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(rate))
+    free_init = {
+        n: settings.initial.get(n, pipeline.param_value(sc, n))
+        for n in settings.free
+        if n not in (settings.ties or {})
+    }
+    method = choose_method(settings.method, settings.loss, num_scalars(free_init))
+    optimizer = None
+    if method == "adam":
+        import optax
+
+        rate = settings.learning_rate
+        if settings.schedule == "cosine":
+            rate = optax.cosine_decay_schedule(rate, settings.steps, alpha=0.1)
+        optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(rate))
+    if progress:
+        print(
+            f"  method: {_METHOD_NAMES[method]}"
+            + (" (auto)" if settings.method == "auto" else ""),
+            flush=True,
+        )
     result = dcfit.fit(
         sc,
         targets,
@@ -243,6 +289,9 @@ def run_fit_config(
         optimizer,
         init=settings.initial,
         loss=settings.loss,
+        method=method,
+        ties=settings.ties,
+        schedule=settings.lm_schedule,
         multistart=settings.multistart,
         devices=settings.devices,
         seed=settings.seed,
@@ -264,7 +313,7 @@ def run_fit_config(
     ident = None
     if settings.identifiability:
         ident = dcfit.scene_identifiability(
-            sc, targets, result.params, noise_sigma=settings.noise_sigma
+            sc, targets, result.params, noise_sigma=settings.noise_sigma, ties=settings.ties
         )
     truth = {k: v for k, v in settings.truth.items() if k in settings.free} or None
     sections = dict(extra_sections or {})
@@ -278,6 +327,7 @@ def run_fit_config(
         )
     if diagnosis is not None:
         sections["Non-finite stop"] = f"{result.message}. Stage check: {diagnosis}."
+    sections["Method"] = _method_section(result, settings)
     sections["Scene"] = (
         f"net {sc.net.rows}x{sc.net.cols}, {sc.num_frames} frames "
         f"({sc.sim.num_substeps} substeps, {sc.sim.integrator}), {len(sc.cameras)} camera(s) "
@@ -301,6 +351,12 @@ def run_fit_config(
     summary = report.fit_summary(result, truth, result.initial)
     summary["out_dir"] = str(out)
     summary["status"] = result.status
+    summary["method"] = result.method
+    summary["evaluations"] = result.evaluations
+    if result.stages is not None:
+        summary["stages"] = result.stages
+    if settings.ties:
+        summary["ties"] = {k: str(v) for k, v in settings.ties.items()}
     if diagnosis is not None:
         summary["diagnosis"] = diagnosis
     summary["total_s"] = time.perf_counter() - t0

@@ -23,14 +23,6 @@ from diffcloth.fit.loop import (
     fit_params,
     load_checkpoint,
 )
-from diffcloth.fit.scene_fit import (
-    LOSSES,
-    default_constraint,
-    fit,
-    make_targets,
-    scene_identifiability,
-    video_loss,
-)
 from diffcloth.fit.losses import (
     absolute_error,
     blur,
@@ -41,6 +33,14 @@ from diffcloth.fit.losses import (
     pyramid_loss,
     squared_error,
     validate_targets,
+)
+from diffcloth.fit.scene_fit import (
+    LOSSES,
+    default_constraint,
+    fit,
+    make_targets,
+    scene_identifiability,
+    video_loss,
 )
 
 __all__ = [

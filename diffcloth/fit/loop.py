@@ -81,6 +81,7 @@ class FitResult:
     status: "max_steps", "converged" (loss <= loss_tol), "stalled" (no relative improvement > tol
     for `patience` steps), "stopped" (callback) or "nonfinite". message: a one-line explanation.
     last_finite: physical parameters of the last evaluation with a finite loss and gradient.
+    method: "adam" or "lm" (`diffcloth.fit.lm`). evaluations: loss + derivative evaluations.
     """
 
     params: dict[str, np.ndarray]
@@ -95,6 +96,9 @@ class FitResult:
     best_step: int
     last_finite: dict[str, np.ndarray]
     checkpoint_path: str | None = None
+    method: str = "adam"
+    evaluations: int | None = None  # loss(+derivative) evaluations; None: len(history)
+    stages: list[dict] | None = None  # LM coarse-to-fine stages (name, steps, loss, status)
 
     @property
     def ok(self) -> bool:

@@ -1,0 +1,222 @@
+"""The Levenberg-Marquardt engine, coarse-to-fine schedules, ties and FitSettings."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffcloth.fit import identifiability
+from diffcloth.fit.identifiability import identifiability_from_jacobian
+from diffcloth.fit.lm import fit_lm, fit_lm_multistart, lm_jacobian
+from diffcloth.fit.scene_fit import choose_method, video_loss
+from diffcloth.fit.schedule import (
+    Schedule,
+    Stage,
+    make_schedule,
+    num_pyramid_levels,
+    stage_weights,
+    video_residuals,
+)
+from diffcloth.fit.settings import FitSettings, resolve_settings
+from diffcloth.fit.ties import parse_tie, parse_ties
+
+RNG = np.random.default_rng(0)
+A = RNG.normal(size=(40, 3))
+B = RNG.normal(size=40)
+
+
+def _linear(p, a, b):
+    return a @ jnp.stack([p["x"], p["y"], p["z"]]) - b
+
+
+def test_lm_linear_least_squares_is_exact():
+    exact = np.linalg.lstsq(A, B, rcond=None)[0]
+    res = fit_lm(
+        _linear,
+        {"x": 0.0, "y": 0.0, "z": 0.0},
+        loss_args=(jnp.asarray(A), jnp.asarray(B)),
+        progress=False,
+    )
+    got = np.array([float(res.params[k]) for k in "xyz"])
+    print(
+        f"linear LSQ: {res.evaluations} evaluations, status {res.status}, error "
+        f"{np.max(np.abs(got - exact)):.2e}"
+    )
+    assert res.method == "lm"
+    assert res.status == "converged", res.message
+    np.testing.assert_allclose(got, exact, rtol=0, atol=1e-9)
+    assert res.loss == pytest.approx(float(np.sum((A @ exact - B) ** 2)), rel=1e-10)
+    assert res.evaluations <= 8  # one Gauss-Newton step solves a linear problem
+
+
+def _decay(p, t, y):
+    return p["a"] * jnp.exp(-p["k"] * t) + p["c"] - y
+
+
+def test_lm_nonlinear_exponential_decay_positive_constraints():
+    t = jnp.linspace(0.0, 4.0, 30)
+    y = 2.5 * jnp.exp(-1.3 * t) + 0.4
+    res = fit_lm(
+        _decay,
+        {"a": 1.0, "k": 0.3, "c": 1.0},
+        {"a": "positive", "k": "positive", "c": "positive"},
+        loss_args=(t, y),
+        progress=False,
+        steps=100,
+    )
+    assert res.status == "converged", res.message
+    for name, true in (("a", 2.5), ("k", 1.3), ("c", 0.4)):
+        assert float(res.params[name]) == pytest.approx(true, rel=1e-6)
+    # the history is monotone (LM only accepts decreasing steps) and starts at the initial value
+    assert res.history.loss[0] > res.history.loss[-1]
+    assert np.all(np.diff(res.history.loss) <= 1e-15)
+    assert float(res.history.params["a"][0]) == pytest.approx(1.0)
+
+
+def _rosen(p):
+    return jnp.stack([10.0 * (p["y"] - p["x"] ** 2), 1.0 - p["x"]])
+
+
+def test_lm_multistart_keeps_independent_starts_and_picks_the_best():
+    inits = [{"x": -1.2, "y": 1.0}, {"x": 2.0, "y": -1.0}, {"x": 0.5, "y": 0.5}]
+    multi = fit_lm_multistart(_rosen, inits, progress=False, steps=200)
+    assert len(multi.results) == 3
+    for r in multi.results:
+        assert r.status == "converged", r.message
+        assert float(r.params["x"]) == pytest.approx(1.0, abs=1e-5)
+    assert multi.best.loss == min(multi.losses)
+
+
+def _nan_after(p, limit):
+    return jnp.where(p["x"] > limit, jnp.nan, p["x"] - 3.0)[None]
+
+
+def test_lm_nonfinite_start_and_hook_interrupt():
+    bad = fit_lm(_nan_after, {"x": 1.0}, loss_args=(0.5,), progress=False)
+    assert bad.status == "nonfinite"
+    assert float(bad.params["x"]) == pytest.approx(1.0)  # never moved to a NaN point
+
+    seen = []
+
+    def hook(step, info):
+        seen.append((step, info["status"], info["method"]))
+        if step == 2:
+            raise KeyboardInterrupt
+
+    res = fit_lm(_rosen, {"x": -1.2, "y": 1.0}, progress=False, hook=hook)
+    assert res.status == "interrupted"
+    assert [s for s, _, _ in seen] == [1, 2]
+    assert np.isfinite(res.loss) and res.loss <= res.history.loss[0]
+
+
+def test_lm_callback_stops():
+    res = fit_lm(_rosen, {"x": -1.2, "y": 1.0}, progress=False, callback=lambda k, i: k >= 3)
+    assert res.status == "stopped"
+    assert res.iterations == 3 and len(res.history) == 4  # the start point and three steps
+    assert res.evaluations == 4  # the probe at the start (initial damping) and three steps
+    assert res.stages[0]["status"] == "stopped"
+
+
+def test_lm_stages_warm_start():
+    """Two stages with different weights: the second starts at the first's result."""
+    t = jnp.linspace(0.0, 4.0, 30)
+    y = 2.5 * jnp.exp(-1.3 * t) + 0.4
+
+    def weighted(p, t, y, w):
+        return w * _decay(p, t, y)
+
+    w1 = jnp.where(t < 1.0, 1.0, 0.0)
+    w2 = jnp.ones_like(t)
+    res = fit_lm(
+        weighted,
+        {"a": 1.0, "k": 0.3, "c": 1.0},
+        {"a": "positive", "k": "positive", "c": "positive"},
+        loss_args=(t, y),
+        stages=[(w1,), (w2,)],
+        stage_names=["early", "all"],
+        progress=False,
+        steps=100,
+    )
+    assert [s["name"] for s in res.stages] == ["early", "all"]
+    assert res.status == "converged"
+    assert float(res.params["k"]) == pytest.approx(1.3, rel=1e-6)
+
+
+def test_lm_jacobian_and_identifiability_from_it():
+    p = {"x": 0.3, "y": -0.2, "z": 0.5}
+    r, jac = lm_jacobian(_linear, p, loss_args=(jnp.asarray(A), jnp.asarray(B)))
+    np.testing.assert_allclose(jac, A, atol=1e-12)  # raw == physical (no constraint)
+    np.testing.assert_allclose(r, A @ np.array([0.3, -0.2, 0.5]) - B, atol=1e-12)
+    a = identifiability(lambda q: _linear(q, jnp.asarray(A), jnp.asarray(B)), p, noise_sigma=0.1)
+    b = identifiability_from_jacobian(jac, p, noise_sigma=0.1)
+    np.testing.assert_allclose(a.std, b.std, rtol=1e-10)
+    np.testing.assert_allclose(a.correlation, b.correlation, atol=1e-12)
+
+
+def test_video_residuals_equal_the_video_losses():
+    video = jnp.asarray(RNG.uniform(size=(2, 3, 16, 16, 3)))
+    target = jnp.asarray(RNG.uniform(size=(2, 3, 16, 16, 3)))
+    levels = num_pyramid_levels((16, 16), 4)
+    from diffcloth.fit.losses import gaussian_pyramid
+
+    assert levels == len(gaussian_pyramid(video, 4)) == 4  # 16, 8, 4, 2
+    for loss in ("l2", "pyramid"):
+        lw, fw = stage_weights(loss, levels, 3, None, np.float64)
+        r = video_residuals(video, target, lw, fw, levels)
+        ref = video_loss(video, target, loss) if loss == "l2" else _pyr(video, target, levels)
+        assert float(jnp.sum(r**2)) == pytest.approx(float(ref), rel=1e-12)
+    lw, fw = stage_weights("pyramid", levels, 3, Stage(min_level=1, frames=0.5), np.float64)
+    np.testing.assert_allclose(lw, [0.0, 1 / 3, 1 / 3, 1 / 3])
+    np.testing.assert_allclose(fw, [0.5, 0.5, 0.0])  # ceil(0.5 * 3) = 2 frames
+
+
+def _pyr(video, target, levels):
+    from diffcloth.fit.losses import pyramid_loss
+
+    flat_v = video.reshape((-1,) + video.shape[-3:])
+    flat_t = target.reshape((-1,) + target.shape[-3:])
+    return jnp.mean(pyramid_loss(flat_v, flat_t, num_levels=levels))
+
+
+def test_schedule_specs():
+    assert make_schedule("none") == Schedule(stages=())
+    s = make_schedule([{"min_level": 2, "frames": 0.5}, {"frames": 1.0}])
+    assert s.stages == (Stage(2, 0.5), Stage(0, 1.0))
+    with pytest.raises(ValueError, match="frames"):
+        Stage(0, 1.5)
+    with pytest.raises(ValueError, match="keys"):
+        make_schedule([{"level": 2}])
+
+
+def test_ties_parse_safely():
+    assert parse_tie("shear", "stretch").scale == 1.0
+    assert parse_tie("bend", "1e-4 * stretch").scale == pytest.approx(1e-4)
+    assert parse_tie("bend", "stretch * 2.5").scale == pytest.approx(2.5)
+    assert parse_tie("bend", "stretch / 4").scale == pytest.approx(0.25)
+    assert parse_tie("bend", {"of": "stretch", "scale": 3e-5}).scale == pytest.approx(3e-5)
+    for bad in ("__import__('os').system('true')", "stretch + 1", "2 ** stretch", "stretch / 0"):
+        with pytest.raises(ValueError, match="ties.bend"):
+            parse_tie("bend", bad)
+    ties = parse_ties({"shear": "stretch", "bend": "1e-4 * stretch"}, ["stretch", "shear"])
+    out = ties.expand({"stretch": 40.0})
+    assert out == {"stretch": 40.0, "shear": 40.0, "bend": pytest.approx(4e-3)}
+    with pytest.raises(ValueError, match="must be free"):
+        parse_ties({"shear": "stretch"}, ["bend"])
+    with pytest.raises(ValueError, match="unknown parameter"):
+        parse_ties({"shear": "strech"})
+    with pytest.raises(ValueError, match="also the source"):
+        parse_ties({"shear": "stretch", "bend": "shear"})
+
+
+def test_fit_settings_and_method_choice():
+    s = resolve_settings(FitSettings(steps=10), {"lm_patience": 3})
+    assert (s.steps, s.lm_patience, s.method) == (10, 3, "auto")
+    with pytest.raises(TypeError, match="unknown fit option"):
+        resolve_settings(None, {"stepz": 3})
+    with pytest.raises(ValueError, match="method"):
+        FitSettings(method="newton")
+    assert choose_method("auto", "pyramid", 2) == "lm"
+    assert choose_method("auto", "l1", 2) == "adam"
+    assert choose_method("auto", "l2", 17) == "adam"
+    assert choose_method("auto", "l2", 2, optimizer=object()) == "adam"
+    with pytest.raises(ValueError, match="least-squares"):
+        choose_method("lm", "l1", 2)
