@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffcloth.io import linear_to_srgb, save_png, to_uint8
 from diffcloth.render import lights as Lm
 from diffcloth.render import textures as T
 from diffcloth.render.camera import make_camera
@@ -124,16 +125,13 @@ def main(out: str = "results/gallery", *, smoke: bool = False) -> pathlib.Path:
         )
         img = np.asarray(jax.block_until_ready(img))
         timing[mode] = round(time.perf_counter() - t0, 3)
-        rgb = (np.clip(img[..., :3], 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)  # display gamma
+        rgb = to_uint8(linear_to_srgb(img[..., :3]))  # sRGB-encoded, for people
         tiles.append(label(rgb, mode))
     rows = [np.concatenate(tiles[i : i + 5], axis=1) for i in range(0, len(tiles), 5)]
     sheet = np.concatenate(rows, axis=0)
     out_dir = pathlib.Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    import imageio.v3 as iio
-
-    path = out_dir / "gallery.png"
-    iio.imwrite(path, sheet)
+    path = save_png(out_dir / "gallery.png", sheet, colorspace="srgb")  # uint8: marked sRGB
     meta = {
         "modes": list(MODES),
         "cloth": source,

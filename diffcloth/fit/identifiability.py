@@ -30,6 +30,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from diffcloth.fit.constraints import make_constraints, to_physical, to_raw
+from diffcloth.physics.forces import autodiff_forces
 
 __all__ = [
     "Identifiability",
@@ -161,7 +162,10 @@ def identifiability(
         def fn(z):
             return jnp.ravel(residual_fn(unravel(z)))
 
-    jac = np.asarray(jax.jit(jax.jacfwd(fn))(flat), dtype=float)  # (m, n), one compile
+    # forward mode: trace the physics with JAX's own force derivatives (the hand-written VJP of
+    # the symplectic step is reverse-mode only)
+    with autodiff_forces():
+        jac = np.asarray(jax.jit(jax.jacfwd(fn))(flat), dtype=float)  # (m, n), one compile
     dphys = None
     if space == "raw":
         dphys = np.diag(

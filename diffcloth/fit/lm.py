@@ -176,6 +176,7 @@ def _run_lm(
     stage_names: Sequence[str] | None,
     hook: Callable[[int, dict], Any] | None,
     devices=None,
+    stop=None,
 ) -> tuple[list[FitResult], float]:
     s = settings
     names = list(init_phys)
@@ -226,7 +227,30 @@ def _run_lm(
                 best_loss[i] = loss[i]
                 best_raw[i] = {k: yh[k][i] for k in names}
 
-    def stop(i, st, msg):
+    def save(step, st):
+        if s.checkpoint_path is None:
+            return
+        from diffcloth.fit.loop import save_checkpoint
+
+        i = int(np.argmin(np.where(np.isfinite(best_loss), best_loss, np.inf)))
+        if best_raw[i] is None:
+            return
+        braw = {kk: np.asarray(v) for kk, v in best_raw[i].items()}
+        bphys = {kk: np.asarray(v) for kk, v in to_physical(braw, cons).items()}
+        arrays = {"step": np.asarray(step)}
+        for group, d in (("raw", braw), ("params", bphys), ("best", bphys), ("last_finite", bphys)):
+            arrays.update({f"{group}/{kk}": v for kk, v in d.items()})
+        meta = {
+            "method": "lm",
+            "step": int(step),
+            "status": st,
+            "names": names,
+            "loss": float(best_loss[i]) if np.isfinite(best_loss[i]) else None,
+            "best": bphys,
+        }
+        save_checkpoint(s.checkpoint_path, arrays, meta)
+
+    def stop_fit(i, st, msg):
         status[i], message[i] = st, msg
         active[i] = False
         stop_len[i] = len(hist_loss)
@@ -328,7 +352,7 @@ def _run_lm(
                             stage_active[i] = False
                             stage_status[i] = end[0]
                             if end[0] == "nonfinite" or last_stage:
-                                stop(i, *end)
+                                stop_fit(i, *end)
                     bar.update(1)
                     if not bar.disable:
                         i = int(np.nanargmin(np.where(np.isfinite(loss), loss, np.inf)))
@@ -355,13 +379,21 @@ def _run_lm(
                         hook(k_global, info)
                     if s.callback is not None and s.callback(k_global, info):
                         for i in np.flatnonzero(active):
-                            stop(i, "stopped", f"stopped by callback at LM step {k_global}")
+                            stop_fit(i, "stopped", f"stopped by callback at LM step {k_global}")
                             stage_status[i] = "stopped"
                         stage_active[:] = False
+                    if stop is not None and stop.is_set():
+                        for i in np.flatnonzero(active):
+                            stop_fit(i, "interrupted", f"interrupted after LM step {k_global}")
+                            stage_status[i] = "interrupted"
+                        stage_active[:] = False
+                    if s.checkpoint_every and k_global % s.checkpoint_every == 0:
+                        save(k_global, "running")
                     if not stage_active.any():
                         break
             finally:
                 bar.close()
+            save(k_global, "running")
             stage_log.append(
                 {
                     "name": stage_names[si],
@@ -375,8 +407,9 @@ def _run_lm(
     except KeyboardInterrupt:
         interrupted = True
         for i in np.flatnonzero(active):
-            stop(i, "interrupted", f"interrupted (Ctrl-C) at LM step {k_global}")
+            stop_fit(i, "interrupted", f"interrupted (Ctrl-C) at LM step {k_global}")
     wall = time.perf_counter() - t0
+    save(k_global, "interrupted" if interrupted or "interrupted" in status else "done")
     if interrupted:
         log.warning("LM fit interrupted; returning the best point so far")
     results = []
@@ -425,7 +458,23 @@ def _run_lm(
 
 def _settings_and_hook(settings, kwargs):
     hook = kwargs.pop("hook", None)
-    return resolve_settings(settings, kwargs), hook
+    stop = kwargs.pop("stop", None)
+    resume = kwargs.pop("resume", None)
+    return resolve_settings(settings, kwargs), hook, stop, resume
+
+
+def _resumed(init, resume):
+    """Start from a checkpoint's best values (an LM fit restarts its stages from there)."""
+    if resume is None:
+        return init
+    from diffcloth.fit.loop import _as_checkpoint
+
+    ck = _as_checkpoint(resume)
+    best = ck.get("best") or {}
+    missing = sorted(set(init) - set(best))
+    if missing:
+        raise ValueError(f"resume: the checkpoint has no values for {missing}")
+    return {k: best[k] for k in init}
 
 
 def fit_lm(
@@ -450,7 +499,12 @@ def fit_lm(
       settings: FitSettings (steps, lm_patience, lm_xtol, lm_ftol, lm_stage_steps, lm_tau,
         loss_tol, progress, callback); keyword arguments naming its fields override it.
       hook (keyword): `hook(step, info)` after every LM step (info: step, stage, loss, params, raw,
-        best_loss, best_raw, status, method), e.g. for checkpoints; its return value is ignored.
+        best_loss, best_raw, status, method); its return value is ignored.
+      stop (keyword): an object with `is_set()` (`diffcloth.fit.interrupt`): checked after each
+        step; when set the fit ends with status "interrupted" (best point kept, checkpoint saved).
+      resume (keyword): a checkpoint (path or `load_checkpoint` dict): start from its best values.
+      checkpoint_path / checkpoint_every (settings): `loop.save_checkpoint` layout (raw, params,
+        best, last_finite of the best start) after every stage, every k steps and at the end.
     Returns:
       FitResult with method "lm", `evaluations` (residual + Jacobian evaluations) and `stages`.
       history.grad_norm is NaN (LM does not form the gradient).

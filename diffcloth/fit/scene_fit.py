@@ -43,6 +43,12 @@ def default_constraint(name: str):
         return Bounded(0.0, 1.0)
     if name == "bump_strength":
         return Bounded(0.0, 10.0)
+    if name in ("light_direction", "point_light_position"):
+        return Identity()
+    if name in ("camera_rotation", "camera_translation", "background"):
+        from diffcloth.pipeline import NUISANCE_RANGES
+
+        return Bounded(*NUISANCE_RANGES[name])
     return Positive()
 
 
@@ -157,7 +163,7 @@ def fit(
     loss: str = "l2",
     method: str | None = None,
     ties: Mapping[str, Any] | None = None,
-    schedule=None,
+    stages=None,
     settings=None,
     **fit_kwargs,
 ):
@@ -177,13 +183,15 @@ def fit(
         parameters, else Adam), "lm" or "adam". The result's `.method` says which ran.
       ties: {name: "other" | "c * other"} tied parameters (`diffcloth.fit.ties`): not optimised,
         set from their source (which must be free) at every evaluation; reported in the result.
-      schedule: LM coarse-to-fine stages (`diffcloth.fit.schedule`; None: the default, "none").
+      stages: LM coarse-to-fine stages (`diffcloth.fit.schedule.make_schedule`: None = default,
+        "none", or a list of {"min_level", "frames"}).
       settings: a `FitSettings`; the keyword arguments below override its fields.
       multistart, spread, seed, devices (in fit_kwargs or settings): number of initial guesses
         fitted at once with `vmap` (extra guesses are the initial values times
         exp(spread * N(0, 1)) for positive parameters), the best kept; devices shards them.
       fit_kwargs: any other `FitSettings` field (learning_rate, tol, patience, progress, callback,
-        checkpoint_path, lm_patience, ...) and `hook` (LM per-step hook).
+        checkpoint_path, lm_patience, ...), `hook` (LM per-step hook), `stop` (interrupt event,
+        `diffcloth.fit.interrupt`) and `resume` (a checkpoint to continue from).
     Returns:
       FitResult (or MultiStartResult when multistart > 1).
     Raises:
@@ -195,6 +203,8 @@ def fit(
     from diffcloth.fit.ties import parse_ties
 
     hook = fit_kwargs.pop("hook", None)
+    stop = fit_kwargs.pop("stop", None)
+    resume = fit_kwargs.pop("resume", None)
     overrides = dict(fit_kwargs)
     if steps is not None:
         overrides["steps"] = steps
@@ -206,8 +216,8 @@ def fit(
         overrides["method"] = method
     if ties is not None:
         overrides["ties"] = ties
-    if schedule is not None:
-        overrides["schedule"] = schedule
+    if stages is not None:
+        overrides["stages"] = stages
     s = resolve_settings(settings, overrides)
     devices, multistart = s.devices, s.multistart
     if devices is not None and (
@@ -234,7 +244,7 @@ def fit(
     if targets.ndim == 4 and len(scene.cameras) == 1:
         targets = targets[None]
     targets = validate_targets(targets, scene.video_shape, name="targets")
-    targets = jnp.asarray(targets, scene.material.stretch.dtype)
+    targets = jnp.asarray(targets, scene.material.density.dtype)
     init = {
         n: np.asarray(init[n] if init and n in init else pipeline.param_value(scene, n))
         for n in free
@@ -253,7 +263,7 @@ def fit(
                     guess[n] = v + s.spread * 0.1 * rng.standard_normal(np.shape(v))
             inits.append(guess)
     if chosen == "lm":
-        stage_args, stage_names, levels = _lm_stages(scene, loss, s.schedule)
+        stage_args, stage_names, levels = _lm_stages(scene, loss, s.stages)
         res_fn = _residual_fn(levels, tie_set)
         common = dict(
             loss_args=(targets, scene),

@@ -44,7 +44,8 @@ class FitSettings:
         this and the loss changed by less than lm_ftol (relative).
       lm_stage_steps: step budget of each coarse stage of the schedule.
       lm_tau: initial damping lambda0 = tau * max diag(J^T J) (Marquardt's rule).
-      schedule: coarse-to-fine stages (`diffcloth.fit.schedule.Schedule`), None = default.
+      stages: coarse-to-fine stages (`diffcloth.fit.schedule.make_schedule` spec: None = the
+        default, "none", a Schedule or a list of {min_level, frames} tables).
     Multistart:
       multistart (number of starts), spread (log-normal spread of the extra guesses), seed,
       devices (shard the starts over this many devices).
@@ -71,7 +72,7 @@ class FitSettings:
     lm_ftol: float = 1e-6
     lm_stage_steps: int = 12
     lm_tau: float = 1e-3
-    schedule: Any = None
+    stages: Any = None
     # multistart
     multistart: int = 1
     spread: float = 0.5

@@ -11,6 +11,10 @@ allows it), the reference `_pair_force` falls back to +y; values and gradients s
 
 from __future__ import annotations
 
+import contextlib
+import functools
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -252,6 +256,7 @@ def _cell_drag_forces(net, material, xp, vp, consts, wind):
 
 
 def _forces_planar(net, material, x, v, *, springs=True, bend=True, wind=None):
+    """Plain (JAX-autodiff) stencil forces (3, R, C); also supports forward mode."""
     consts = _frame_constants(net, material)
     xp, vp = _padded(x), _padded(v)
     coef = _frame_coefficients(net, material, xp, vp, consts) if springs else None
@@ -259,6 +264,195 @@ def _forces_planar(net, material, x, v, *, springs=True, bend=True, wind=None):
     if wind is not None:
         f = f + _cell_drag_forces(net, material, xp, vp, consts, wind)
     return f
+
+
+# ---------------------------------------------------------------------------------------------
+# The same stencil forces with a hand-written reverse-mode derivative. JAX's own transpose of the
+# forward turns each of the ~30 shifted slices into a pad and sums them in one slow fusion; the
+# VJP below pads the cotangent once and reads shifted slices of it, mirroring the forward: per
+# spring it forms three scalars (s, and the coefficients of d and dv in the cotangent of d) and
+# gathers them onto the nodes exactly as the forward gathers s. Reverse mode only (custom_vjp);
+# `autodiff_forces()` switches back to the plain form where forward mode is needed (jacfwd).
+
+_HAND_VJP = [True]
+
+
+@contextlib.contextmanager
+def autodiff_forces():
+    """Context manager: trace the stencil forces with JAX autodiff (forward mode works).
+
+    By default the symplectic step uses a hand-written VJP (`jax.custom_vjp`, faster reverse
+    mode, no forward mode). Wrap the *tracing* of code that needs `jax.jvp` / `jax.jacfwd`
+    through a symplectic rollout in `with autodiff_forces():` (`identifiability` does).
+    """
+    prev = _HAND_VJP[0]
+    _HAND_VJP[0] = False
+    try:
+        yield
+    finally:
+        _HAND_VJP[0] = prev
+
+
+def _stencil_params(net, material, wind):
+    """The differentiable inputs of the stencil kernel (gradients flow to net/material outside)."""
+    k, rest, kbh, kbv, cells = _frame_constants(net, material)
+    dtype = k.dtype
+    if wind is None:
+        alpha = beta = jnp.zeros((), dtype)
+        wind = jnp.zeros(3, dtype)
+    else:
+        alpha = -0.25 * material.drag_tangent
+        beta = -0.25 * (material.drag_normal - material.drag_tangent)
+    c = jnp.asarray(material.damping, dtype)
+    return (k, rest, kbh, kbv, cells, c, jnp.asarray(alpha, dtype), jnp.asarray(beta, dtype), wind)
+
+
+def _stencil_primal(cfg, params, x, v):
+    """Springs + bending (+ drag when cfg says so) (3, R, C) from the stencil parameters."""
+    R, C, springs, bend, drag = cfg
+    k, rest, kbh, kbv, cells, c, alpha, beta, wind = params
+    xp, vp = _padded(x), _padded(v)
+    f = jnp.zeros_like(x)
+    if springs:
+        coef = []
+        for i, (a, b) in enumerate(_SETS):
+            d = _fs(xp, *b, R, C) - _fs(xp, *a, R, C)
+            dv = _fs(vp, *b, R, C) - _fs(vp, *a, R, C)
+            coef.append(_spring_coef(d, dv, rest[i], k[i], c * k[i]))
+        xn = _ns(xp, 0, 0, R, C)
+        for s, so, no in _ENDS:
+            f = f + _ns(coef[s], *so, R, C, pad=1)[None] * (_ns(xp, *no, R, C) - xn)
+    if bend:
+        f = f + _bend_stencil(xp + c * vp, kbh, kbv, R, C)
+    if drag:
+        an, u = _cell_vectors(xp, vp, wind, R, C)
+        aa = _dot(an, an)
+        ok = aa > _eps(an)
+        safe = jnp.where(ok, aa, 1.0)
+        num = (alpha * aa * cells)[None] * u + (beta * _dot(u, an) * cells)[None] * an
+        fc = jnp.where(ok[None], num, 0.0) / jnp.sqrt(safe)[None]
+        f = f + sum(_ns(fc, di, dj, R, C, pad=1) for di, dj in _CELLS)
+    return f
+
+
+def _bend_stencil(wp, kbh, kbv, R, C):
+    """-D^T K D w (3, R, C) from a 2-padded w: the (symmetric) linear bending operator."""
+    w = lambda di, dj: _ns(wp, di, dj, R, C)
+    gh = lambda e: _ns(kbh, 0, e, R, C, pad=1)[None] * (w(0, e - 1) - 2.0 * w(0, e) + w(0, e + 1))
+    gv = lambda e: _ns(kbv, e, 0, R, C, pad=1)[None] * (w(e - 1, 0) - 2.0 * w(e, 0) + w(e + 1, 0))
+    return 2.0 * gh(0) - gh(-1) - gh(1) + 2.0 * gv(0) - gv(-1) - gv(1)
+
+
+def _stencil_vjp(cfg, params, x, v, g):
+    """Cotangents (params, x, v) of `_stencil_primal` for the output cotangent g (3, R, C)."""
+    R, C, springs, bend, drag = cfg
+    k, rest, kbh, kbv, cells, c, alpha, beta, wind = params
+    xp, vp, gp = _padded(x), _padded(v), _padded(g)
+    fs = lambda a, di, dj: _fs(a, di, dj, R, C)
+    ns = lambda a, di, dj: _ns(a, di, dj, R, C)
+    zero = jnp.zeros((), x.dtype)
+    ct_x = jnp.zeros_like(x)
+    ct_v = jnp.zeros_like(v)
+    ct_k, ct_rest = jnp.zeros_like(k), jnp.zeros_like(rest)
+    ct_c = zero
+    if springs:
+        # per spring: s (force scalar), a and b with cotangent(d) = s G + a d + b dv, G = g1 - g2,
+        # cotangent(dv) = b d. They are gathered onto the nodes as the forward gathers s.
+        scal, cks, crs = [], [], []
+        for i, (p, q) in enumerate(_SETS):
+            d = fs(xp, *q) - fs(xp, *p)
+            dv = fs(vp, *q) - fs(vp, *p)
+            gd = _dot(fs(gp, *p) - fs(gp, *q), d)
+            dd = _dot(d, d)
+            ok = dd > _eps(d)
+            inv = 1.0 / jnp.where(ok, dd, 1.0)
+            rl = jnp.sqrt(inv)  # 1 / L
+            ki, ri = k[i], rest[i]
+            ck = c * ki
+            dvd = _dot(dv, d) * inv
+            sig = jnp.where(ok, gd, 0.0)
+            s = jnp.where(ok, ki * (1.0 - ri * rl) + ck * dvd, 0.0)
+            a = sig * (ki * ri * rl - 2.0 * ck * dvd) * inv
+            b = sig * ck * inv
+            scal.append(jnp.stack([s, a, b]))
+            cks.append(sig * (1.0 - ri * rl + c * dvd))
+            crs.append(-sig * ki * rl)
+            ct_c = ct_c + jnp.sum(sig * ki * dvd)
+        ct_k = jnp.stack(cks)
+        ct_rest = jnp.stack(crs)
+        # materialise the per-spring scalars once (not once per end and component)
+        scal = jax.lax.optimization_barrier(scal)
+        xn, vn, gn = ns(xp, 0, 0), ns(vp, 0, 0), ns(gp, 0, 0)
+        for si, so, no in _ENDS:
+            s, a, b = (_ns(t, *so, R, C, pad=1)[None] for t in scal[si])
+            dx = ns(xp, *no) - xn
+            ct_x = ct_x + s * (ns(gp, *no) - gn) - a * dx - b * (ns(vp, *no) - vn)
+            ct_v = ct_v - b * dx
+    ct_kbh, ct_kbv = jnp.zeros_like(kbh), jnp.zeros_like(kbv)
+    if bend:
+        wp = xp + c * vp
+        ct_w = _bend_stencil(gp, kbh, kbv, R, C)  # the operator is symmetric
+        ct_x = ct_x + ct_w
+        ct_v = ct_v + c * ct_w
+        ct_c = ct_c + jnp.sum(ct_w * v)
+        dh = lambda a: fs(a, 0, -1) - 2.0 * fs(a, 0, 0) + fs(a, 0, 1)
+        dv_ = lambda a: fs(a, -1, 0) - 2.0 * fs(a, 0, 0) + fs(a, 1, 0)
+        ct_kbh = -_dot(dh(gp), dh(wp))
+        ct_kbv = -_dot(dv_(gp), dv_(wp))
+    ct_cells = jnp.zeros_like(cells)
+    ct_alpha, ct_beta, ct_wind = zero, zero, jnp.zeros_like(wind)
+    if drag:
+        an, u = _cell_vectors(xp, vp, wind, R, C)
+        gc = fs(gp, 0, 0) + fs(gp, 0, 1) + fs(gp, 1, 0) + fs(gp, 1, 1)
+        aa = _dot(an, an)
+        ok = aa > _eps(an)
+        inv_a = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, aa, 1.0)), 0.0)  # 1 / A, 0 if degenerate
+        area = aa * inv_a
+        gu, ga, ua = _dot(gc, u), _dot(gc, an), _dot(u, an)
+        ct_cells = alpha * area * gu + beta * ua * ga * inv_a
+        m = jnp.where(ok, cells, 0.0)
+        ct_alpha = jnp.sum(m * area * gu)
+        ct_beta = jnp.sum(m * ua * ga * inv_a)
+        ct_u = (m * alpha * area)[None] * gc + (m * beta * ga * inv_a)[None] * an
+        ct_a = (
+            (m * inv_a * (alpha * gu - beta * ua * ga * inv_a * inv_a))[None] * an
+            + (m * beta * ga * inv_a)[None] * u
+            + (m * beta * ua * inv_a)[None] * gc
+        )
+        ct_wind = -jnp.sum(ct_u, axis=(1, 2))
+        p = fs(xp, 1, 1) - fs(xp, 0, 0)
+        q = fs(xp, 0, 1) - fs(xp, 1, 0)
+        ct_p = 0.5 * _cross(q, ct_a)
+        ct_q = 0.5 * _cross(ct_a, p)
+        cell = lambda a, di, dj: _ns(a, di, dj, R, C, pad=1)
+        ct_v = ct_v + 0.25 * sum(cell(ct_u, di, dj) for di, dj in _CELLS)
+        ct_x = ct_x - cell(ct_p, 0, 0) + cell(ct_p, -1, -1) + cell(ct_q, 0, -1) - cell(ct_q, -1, 0)
+    ct_params = (ct_k, ct_rest, ct_kbh, ct_kbv, ct_cells, ct_c, ct_alpha, ct_beta, ct_wind)
+    return ct_params, ct_x, ct_v
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _stencil(cfg, params, x, v):
+    return _stencil_primal(cfg, params, x, v)
+
+
+def _stencil_fwd(cfg, params, x, v):
+    return _stencil_primal(cfg, params, x, v), (params, x, v)
+
+
+def _stencil_bwd(cfg, res, g):
+    return _stencil_vjp(cfg, *res, g)
+
+
+_stencil.defvjp(_stencil_fwd, _stencil_bwd)
+
+
+def _stencil_forces(net, material, x, v, wind):
+    """Springs + bending + drag (3, R, C) with the hand-written VJP (see `autodiff_forces`)."""
+    if not _HAND_VJP[0]:
+        return _forces_planar(net, material, x, v, wind=wind)
+    cfg = (net.rows, net.cols, True, True, wind is not None)
+    return _stencil(cfg, _stencil_params(net, material, wind), x, v)
 
 
 def _spring_forces(net, material, x, v):
@@ -275,7 +469,9 @@ def _internal_forces(net, material, x, v):
 
 def _total_forces(net, material, x, v, gravity, wind):
     """Springs, bending, drag and gravity (3, R, C) on planar x, v."""
-    f = _forces_planar(net, material, x, v, wind=wind)
+    if hasattr(material, "total_forces_planar"):  # another force model (physics.massspring)
+        return material.total_forces_planar(net, x, v, gravity, wind)
+    f = _stencil_forces(net, material, x, v, wind)
     return f + node_mass(net, material)[None] * gravity[:, None, None]
 
 
@@ -338,6 +534,8 @@ def internal_force_differential(net: Net, material: Material, x, dx, dv):
 
 def node_mass(net: Net, material: Material):
     """Lumped node masses, kg, (rows, cols): density * area (differentiable in density)."""
+    if hasattr(material, "node_mass"):  # another force model (physics.massspring)
+        return material.node_mass(net)
     return material.density * net.area
 
 

@@ -185,6 +185,11 @@ def _implicit_substep(net, sim, material, x, v, mass, free, h, pin_v):
     return x + h * v1, v1
 
 
+def _displacement_rule(sim) -> bool:
+    rule = getattr(sim, "friction_rule", "auto")
+    return rule == "displacement" or (rule == "auto" and sim.integrator == "implicit")
+
+
 def step_with_contacts(
     net: Net,
     sim: SimSettings,
@@ -207,6 +212,11 @@ def step_with_contacts(
     Returns:
       (state at the end of the frame, Contacts).
     """
+    if sim.integrator == "implicit" and hasattr(material, "total_forces_planar"):
+        raise ValueError(
+            "integrator: 'implicit' supports the continuum Material only; "
+            f"{type(material).__name__} runs with integrator = 'symplectic'"
+        )
     num = sim.num_substeps
     h = sim.dt / num
     mass = node_mass(net, material)
@@ -237,7 +247,7 @@ def step_with_contacts(
                 material.friction,
                 sim.collision_margin,
                 t,
-                x_prev=x if sim.integrator == "implicit" else None,
+                x_prev=x if _displacement_rule(sim) else None,
                 h=h,
             )
         return x1, v1, dsi, dpi

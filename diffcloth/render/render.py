@@ -18,22 +18,40 @@ from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.rays import ray_sphere
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
+from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility
 from diffcloth.render.textures import Textures
-from diffcloth.shapes import Sphere
+from diffcloth.shapes import Plane, Sphere
+
+#: default albedo of drawn ground planes (linear RGB)
+PLANE_COLOR = (0.6, 0.6, 0.6)
 
 
 @functools.lru_cache(maxsize=32)
-def _grid_neighbors_np(grid_shape):
+def _grid_neighbors_np(grid_shape, flipped: bool = False):
     from diffcloth.surface.tessellate import _faces_np
 
+    faces = _faces_np(*grid_shape)
+    if flipped:  # tessellate(flip=True) reverses each face's vertex order (faces[:, ::-1])
+        faces = faces[:, ::-1]
     with jax.ensure_compile_time_eval():  # concrete even when first called under a trace
-        return np.asarray(edge_neighbors(_faces_np(*grid_shape)))
+        return np.asarray(edge_neighbors(np.ascontiguousarray(faces)))
 
 
-def _grid_neighbors(grid_shape):
+def _grid_neighbors(surface):
     """Edge neighbours of a tessellated grid's triangles, computed once in numpy (a traced
-    `edge_neighbors` would sort inside every compiled program). None for other meshes."""
-    return None if grid_shape is None else jnp.asarray(_grid_neighbors_np(tuple(grid_shape)))
+    `edge_neighbors` would sort inside every compiled program). None for other meshes.
+
+    Column k is the triangle across the edge opposite vertex k of `surface.faces`, so the table
+    follows the winding: a flipped surface (faces[:, ::-1]) gets its columns reversed. (A table
+    built from the unflipped faces marks the internal diagonals of a flipped grid as silhouettes
+    and its border as internal: `antialias` then blends across the diagonals, and the image
+    jumps when the depth order of two such pixels swaps; issue 14.)
+    """
+    grid_shape = getattr(surface, "grid_shape", None)
+    if grid_shape is None:
+        return None
+    flipped = bool(getattr(surface, "flipped", False))
+    return jnp.asarray(_grid_neighbors_np(tuple(grid_shape), flipped))
 
 
 def _face_normals(positions, faces, normals):
@@ -44,7 +62,13 @@ def _face_normals(positions, faces, normals):
     return safe_normalize(jnp.where((side < 0)[:, None], -fn, fn))
 
 
-def _sphere_layer(camera: Camera, spheres: Sphere, lights: Lights, appearance: Appearance):
+def _sphere_layer(
+    camera: Camera,
+    spheres: Sphere,
+    lights: Lights,
+    appearance: Appearance,
+    shadows: ShadowMaps | None = None,
+):
     """Ray-cast spheres: premultiplied RGBA (H, W, 4) with antialiased rims, and view depth (H, W).
 
     Coverage of a pixel is clip((r - d) / footprint + 1/2, 0, 1) with d the distance from the
@@ -87,12 +111,80 @@ def _sphere_layer(camera: Camera, spheres: Sphere, lights: Lights, appearance: A
     depth = jnp.take_along_axis(depth, nearest, axis=0)[0]
     point = jnp.take_along_axis(point, nearest[..., None], axis=0)[0]
     normal = jnp.take_along_axis(normal, nearest[..., None], axis=0)[0]
-    diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance)
+    vis = shadow_visibility(shadows, point, normal)
+    diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance, vis)
     amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
     albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
     color = albedo * (amb + diffuse) + jnp.reshape(appearance.specular, (1, 1, 3)) * specular
     rgba = jnp.concatenate([color * alpha[..., None], alpha[..., None]], axis=-1)
     return rgba, depth
+
+
+def _plane_layer(
+    camera: Camera,
+    planes: Plane,
+    lights: Lights,
+    appearance: Appearance,
+    color,
+    shadows: ShadowMaps | None = None,
+):
+    """Ray-cast planes (seen from their free side, up to the far plane): opaque Lambertian
+    RGBA (H, W, 4) (premultiplied; alpha 1 where a plane is hit) and view depth (H, W).
+
+    Colour = color * (appearance.ambient * ambient light + sum_l radiance_l max(N.L_l, 0) V_l),
+    V_l the shadow visibility; no specular (a matte ground).
+    """
+    origins, dirs = pixel_rays(camera)
+    pl = planes.batched()
+    big = jnp.asarray(1e10, origins.dtype)
+
+    def one(normal, offset):
+        n = jnp.reshape(normal, (1, 1, 3))
+        side = jnp.sum(origins * n, axis=-1) - offset  # > 0: eye on the free side
+        nd = jnp.sum(dirs * n, axis=-1)
+        t = safe_div_neg(side, nd)
+        point = origins + t[..., None] * dirs
+        _, depth = project(point, camera)
+        hit = (side > 0) & (nd < 0) & (depth < camera.far)
+        return jnp.where(hit, depth, big), point
+
+    depth, point = jax.vmap(one)(pl.normal, pl.offset)  # (npl, H, W, ...)
+    nearest = jnp.argmin(depth, axis=0)
+    depth = jnp.take_along_axis(depth, nearest[None], axis=0)[0]
+    point = jnp.take_along_axis(point, nearest[None, ..., None], axis=0)[0]
+    normal = pl.normal[nearest]
+    hit = depth < big
+    point = jnp.where(hit[..., None], point, 0.0)
+    vis = shadow_visibility(shadows, point, normal)
+    diffuse, _ = blinn_phong(normal, -dirs, point, lights, appearance, vis)
+    amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
+    rgb = jnp.reshape(jnp.asarray(color, point.dtype), (1, 1, 3)) * (amb + diffuse)
+    alpha = hit.astype(point.dtype)[..., None]
+    return jnp.concatenate([rgb * alpha, alpha], axis=-1), depth
+
+
+def safe_div_neg(side, nd):
+    """Ray parameter t = side / -nd of a plane hit; 0 where the ray is parallel."""
+    ok = nd < 0
+    return jnp.where(ok, side / jnp.where(ok, -nd, 1.0), 0.0)
+
+
+def _occluder_mesh(surface, occluders):
+    """(positions, faces, neighbors) of the cloth plus extra occluder triangles (boxes...)."""
+    pos, faces = surface.positions, jnp.asarray(surface.faces).astype(jnp.int32)
+    nbr = _grid_neighbors(getattr(surface, "grid_shape", None))
+    if nbr is None:
+        nbr = edge_neighbors(faces)
+    if occluders is None:
+        return pos, faces, nbr
+    opos, ofaces = occluders[0], jnp.asarray(occluders[1]).astype(jnp.int32)
+    onbr = edge_neighbors(ofaces)
+    m, n = faces.shape[0], pos.shape[0]
+    return (
+        jnp.concatenate([pos, opos.astype(pos.dtype)], axis=0),
+        jnp.concatenate([faces, ofaces + n], axis=0),
+        jnp.concatenate([nbr, jnp.where(onbr >= 0, onbr + m, -1)], axis=0),
+    )
 
 
 def surface_gbuffer(
@@ -105,8 +197,12 @@ def surface_gbuffer(
     two_sided: bool = True,
     cull_backfaces: bool = False,
     max_tiles: int | None = None,
+    shadows: ShadowMaps | None = None,
 ):
     """Rasterize a Surface into the shader's per-pixel inputs.
+
+    shadows: optional `shadows.shadow_maps` output: fills `visibility` per pixel (and lights the
+    Gouraud vertices with per-vertex visibility).
 
     Returns:
       (ShadingBuffer, raster GBuffer (ids, depth, crossings for `antialias`), eye vectors (H, W, 3)
@@ -130,15 +226,16 @@ def surface_gbuffer(
             eye4 = jnp.concatenate([eye_position(camera), jnp.ones(1, pos.dtype)])
         else:
             eye4 = jnp.concatenate([eye_rays[0, 0], jnp.zeros(1, pos.dtype)])
-        attrs["color"] = light_vertices(pos, nrm, eye4, lights, appearance)
+        vvis = shadow_visibility(shadows, pos, nrm)
+        attrs["color"] = light_vertices(pos, nrm, eye4, lights, appearance, vvis)
         if two_sided:
-            attrs["color_back"] = light_vertices(pos, -nrm, eye4, lights, appearance)
+            attrs["color_back"] = light_vertices(pos, -nrm, eye4, lights, appearance, vvis)
     buf = rasterize_gbuffer(
         pos,
         faces,
         camera,
         attrs,
-        neighbors=_grid_neighbors(getattr(surface, "grid_shape", None)),
+        neighbors=_grid_neighbors(surface),
         cull_backfaces=cull_backfaces,
         max_tiles=max_tiles,
     )
@@ -168,6 +265,7 @@ def surface_gbuffer(
         mask=mask,
         face_normal=face_normal,
         color=color,
+        visibility=shadow_visibility(shadows, a["position"], normal),
     )
     return gb, buf, eye_rays
 
@@ -188,6 +286,11 @@ def render(
     cull_backfaces: bool = False,
     two_sided: bool = True,
     max_tiles: int | None = None,
+    planes: Plane | None = None,
+    plane_color=PLANE_COLOR,
+    occluders=None,
+    shadow_map_size: int = 256,
+    return_cloth_mask: bool = False,
 ):
     """Rasterize, shade and composite a cloth surface.
 
@@ -206,12 +309,35 @@ def render(
       antialiased: apply the rasterizer's silhouette antialiasing (gives edge gradients).
       two_sided: light the back side of the cloth with the flipped normal (cloth is thin).
       max_tiles: rasterizer window budget (see `raster.rasterize`).
+      planes: optional ground planes (e.g. the scene's plane colliders) drawn as opaque matte
+        surfaces (ray cast from their free side up to the camera's far plane), depth-composited
+        with the cloth and spheres; they receive shadows.
+      plane_color: (3,) linear albedo of the planes.
+      occluders: optional extra shadow-casting triangle mesh (positions (n, 3), faces (m, 3)),
+        e.g. box bodies; differentiable in the positions. (Cast only; drawing is the caller's.)
+      shadow_map_size: static shadow-map size in texels (used only by lights with shadows).
+      return_cloth_mask: also return the visible cloth coverage (H, W) in [0, 1]: the antialiased
+        cloth alpha (soft at silhouettes, so differentiable w.r.t. the geometry there) times the
+        part of each pixel not covered by a sphere or plane drawn in front. The image is unchanged.
+    Shadows: lights whose `shadows` flag is set (see `make_lights`) are occluded by the cloth
+      (plus `occluders`) through a shadow map and by `spheres` analytically, on the cloth, the
+      spheres and the planes (`diffcloth.render.shadows`). Without shadow-casting lights no
+      shadow code runs and the image is exactly the unshadowed one.
     Returns:
       (H, W, 4) image: linear RGB (not clipped) and alpha = coverage. With a background the RGB is
-      composited over it; the alpha channel still reports coverage of cloth and spheres.
+      composited over it; the alpha channel still reports coverage of cloth, spheres and planes.
+      With return_cloth_mask: (image, cloth_mask).
     """
     if shading not in MODES:
         raise ValueError(f"shading must be one of {MODES}, got {shading!r}")
+    maps = None
+    if lights.casts_shadows:
+        maps = shadow_maps(
+            lights,
+            mesh=_occluder_mesh(surface, occluders),
+            spheres=spheres,
+            size=shadow_map_size,
+        )
     gb, buf, eye_rays = surface_gbuffer(
         surface,
         camera,
@@ -221,6 +347,7 @@ def render(
         two_sided=two_sided,
         cull_backfaces=cull_backfaces,
         max_tiles=max_tiles,
+        shadows=maps,
     )
     img = shade(
         gb,
@@ -237,14 +364,32 @@ def render(
         # gathers, bump maps) would be recomputed for each neighbour and channel (with the
         # materializations in shade: minnaert render 265 -> 46 ms at 256^2, benchmarks/shading.py)
         img = antialias(materialize(img), buf)
+    cloth_mask = img[..., 3]
     if spheres is not None and draw_spheres:
-        sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance)
+        sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)
         front = (sphere_depth < buf.depth * (1.0 - 1e-4))[..., None]
         over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
         under = img + (1.0 - img[..., 3:]) * sphere_rgba  # cloth over sphere
         img = jnp.where(front, over, under)
+        cloth_mask = jnp.where(front[..., 0], (1.0 - sphere_rgba[..., 3]) * cloth_mask, cloth_mask)
+        depth = jnp.minimum(buf.depth, sphere_depth)
+    else:
+        depth = buf.depth
+    if planes is not None:
+        plane_rgba, plane_depth = _plane_layer(
+            camera, planes, lights, appearance, plane_color, maps
+        )
+        front = (plane_depth < depth)[..., None]
+        cloth_mask = jnp.where(front[..., 0], (1.0 - plane_rgba[..., 3]) * cloth_mask, cloth_mask)
+        img = jnp.where(
+            front,
+            plane_rgba + (1.0 - plane_rgba[..., 3:]) * img,
+            img + (1.0 - img[..., 3:]) * plane_rgba,
+        )
     if background is not None:
         bg = jnp.reshape(jnp.asarray(background, img.dtype), (1, 1, 3))
         img = jnp.concatenate([img[..., :3] + (1.0 - img[..., 3:]) * bg, img[..., 3:]], axis=-1)
+    if return_cloth_mask:
+        return img, cloth_mask
     return img
