@@ -32,14 +32,6 @@ from diffcloth.fit.loop import (
     fit_params,
     load_checkpoint,
 )
-from diffcloth.fit.scene_fit import (
-    LOSSES,
-    default_constraint,
-    fit,
-    make_targets,
-    scene_identifiability,
-    video_loss,
-)
 from diffcloth.fit.losses import (
     absolute_error,
     blur,
@@ -60,8 +52,21 @@ from diffcloth.fit.masks import (
     target_distances,
 )
 from diffcloth.fit.robust import ROBUST_KINDS, robust_residuals, robust_rho
+from diffcloth.fit.scene_fit import (
+    LOSSES,
+    default_constraint,
+    fit,
+    make_targets,
+    scene_identifiability,
+    video_loss,
+)
+from diffcloth.fit.settings import FitSettings
+from diffcloth.fit.ties import Ties, parse_ties
 
 __all__ = [
+    "FitSettings",
+    "Ties",
+    "parse_ties",
     "FootageLoss",
     "FootageTargets",
     "ROBUST_KINDS",

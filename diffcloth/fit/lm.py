@@ -109,7 +109,7 @@ def _compiled(residual_fn, cons_items, batched: bool):
         )
 
     if not batched:
-        return eqx.filter_jit(init), eqx.filter_jit(step)
+        return _forward_mode(eqx.filter_jit(init)), _forward_mode(eqx.filter_jit(step))
 
     def masked_step(y, state, args, active):
         ax = eqx.if_array(0)
@@ -127,9 +127,22 @@ def _compiled(residual_fn, cons_items, batched: bool):
         return (y_new, state_new) + out[2:]
 
     return (
-        eqx.filter_jit(eqx.filter_vmap(init, in_axes=(eqx.if_array(0), None, 0))),
-        eqx.filter_jit(masked_step),
+        _forward_mode(eqx.filter_jit(eqx.filter_vmap(init, in_axes=(eqx.if_array(0), None, 0)))),
+        _forward_mode(eqx.filter_jit(masked_step)),
     )
+
+
+def _forward_mode(fn):
+    """Call (and so trace) `fn` with the physics' plain autodiff forces: the hand-written VJP of
+    the symplectic step is reverse-mode only (`diffcloth.physics.forces.autodiff_forces`)."""
+    from diffcloth.physics.forces import autodiff_forces
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        with autodiff_forces():
+            return fn(*args, **kwargs)
+
+    return call
 
 
 def _probe(init_fn, step_fn, raw, args, batched, n):
@@ -279,7 +292,7 @@ def _run_lm(
             if si == 0:
                 record(np.where(active, loss0, np.nan), raw, si)
             for i in np.flatnonzero(active & ~ok0):
-                stop(
+                stop_fit(
                     i,
                     "nonfinite",
                     f"non-finite residual or Jacobian at the start of "
@@ -509,8 +522,8 @@ def fit_lm(
       FitResult with method "lm", `evaluations` (residual + Jacobian evaluations) and `stages`.
       history.grad_norm is NaN (LM does not form the gradient).
     """
-    s, hook = _settings_and_hook(settings, dict(kwargs))
-    init_phys = _check_init(init)
+    s, hook, stop, resume = _settings_and_hook(settings, dict(kwargs))
+    init_phys = _check_init(_resumed(init, resume))
     results, _ = _run_lm(
         residual_fn,
         init_phys,
@@ -522,6 +535,7 @@ def fit_lm(
         stages=stages,
         stage_names=stage_names,
         hook=hook,
+        stop=stop,
     )
     return results[0]
 
@@ -540,7 +554,11 @@ def fit_lm_multistart(
     """`fit_lm` for several starts at once (vmap; each start has its own trust region and stops
     on its own); `devices` (settings) shards the starts as `fit_multistart` does. The best final
     loss wins."""
-    s, hook = _settings_and_hook(settings, dict(kwargs))
+    s, hook, stop, resume = _settings_and_hook(settings, dict(kwargs))
+    if resume is not None:
+        if not isinstance(inits, Sequence) or not inits:
+            raise ValueError("resume needs inits as a list of dicts")
+        inits = [_resumed(inits[0], resume)] + list(inits[1:])
     stacked, n = _stack_inits(inits)
     results, wall = _run_lm(
         residual_fn,
@@ -554,6 +572,7 @@ def fit_lm_multistart(
         stage_names=stage_names,
         hook=hook,
         devices=s.devices if s.devices and s.devices > 1 else None,
+        stop=stop,
     )
     losses = np.array([r.loss if np.isfinite(r.loss) else np.inf for r in results])
     return MultiStartResult(results=results, best_index=int(np.argmin(losses)), wall_s=wall)

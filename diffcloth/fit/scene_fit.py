@@ -271,6 +271,8 @@ def fit(
             stage_names=stage_names,
             settings=s,
             hook=hook,
+            stop=stop,
+            resume=resume,
         )
         if multistart <= 1:
             result = fit_lm(res_fn, init, cons, **common)
@@ -291,6 +293,8 @@ def fit(
             checkpoint_path=s.checkpoint_path,
             checkpoint_every=s.checkpoint_every,
             loss_args=(targets, scene),
+            resume=resume,
+            stop=stop,
         )
         if multistart <= 1:
             result = fit_params(loss_fn, init, cons, **kw)
