@@ -220,3 +220,105 @@ def test_fit_settings_and_method_choice():
     assert choose_method("auto", "l2", 2, optimizer=object()) == "adam"
     with pytest.raises(ValueError, match="least-squares"):
         choose_method("lm", "l1", 2)
+
+
+TINY = {
+    "net": {
+        "rows": 6,
+        "cols": 6,
+        "width": 0.8,
+        "height": 0.8,
+        "center": [0.0, 0.75, 0.0],
+        "plane": "xz",
+    },
+    "material": {
+        "stretch": 30.0,
+        "shear": 10.0,
+        "bend": 1e-3,
+        "damping": 1e-4,
+        "density": 0.3,
+        "drag_normal": 0.6,
+        "friction": 0.3,
+    },
+    "sim": {"dt": 1.0 / 30.0, "num_frames": 8, "num_substeps": 10},
+    "spheres": [{"center": [0.05, 0.35, 0.0], "radius": 0.25}],
+    "render": {"width": 24, "height": 24, "level": 2, "frame_stride": 2},
+    "camera": {"eye": [0.0, 1.2, 1.6], "target": [0.0, 0.45, 0.0]},
+}
+TRUTH = {"bend": 2e-3, "drag_normal": 1.0}
+
+
+def _first_within(history, truth, rel):
+    """Index of the first history entry with every parameter within `rel` of the truth."""
+    ok = np.ones(len(history), bool)
+    for k, v in truth.items():
+        ok &= np.abs(history.params[k] - v) <= rel * abs(v)
+    hits = np.flatnonzero(ok)
+    return int(hits[0]) if hits.size else None
+
+
+@pytest.mark.slow  # two compiled fits of a tiny scene (~1-2 min on a loaded 2-core machine)
+def test_scene_fit_lm_needs_fewer_evaluations_than_adam():
+    import diffcloth as dc
+    from diffcloth import config as cfg
+    from diffcloth import scene
+
+    sc = scene.build_scene(cfg.parse_config(TINY), dtype=jnp.float64)
+    targets = dc.fit.make_targets(sc, TRUTH)
+    init = {"bend": 1e-3, "drag_normal": 0.6}
+    lm = dc.fit.fit(
+        sc, targets, ["bend", "drag_normal"], steps=30, init=init, loss="pyramid", progress=False
+    )
+    adam = dc.fit.fit(
+        sc,
+        targets,
+        ["bend", "drag_normal"],
+        steps=150,
+        init=init,
+        loss="pyramid",
+        method="adam",
+        learning_rate=0.1,
+        patience=None,
+        progress=False,
+    )
+    assert (lm.method, adam.method) == ("lm", "adam")
+    for k, v in TRUTH.items():
+        assert abs(float(lm.params[k]) - v) <= 0.01 * v, (k, lm.params[k], lm.message)
+    n_lm = _first_within(lm.history, TRUTH, 0.01)
+    n_adam = _first_within(adam.history, TRUTH, 0.01)
+    # evaluations: LM = its probe per stage + steps up to that entry (each a residual + J pass);
+    # Adam = value_and_grad calls up to that entry
+    stages_before = sum(1 for _ in lm.stages)  # upper bound on probes spent
+    lm_evals = n_lm + stages_before
+    adam_evals = np.inf if n_adam is None else n_adam + 1
+    print(
+        f"\n2-parameter scene fit to 1 %: LM {lm_evals} evaluations (residual + forward-mode "
+        f"Jacobian), Adam {adam_evals} evaluations (loss + gradient); LM total "
+        f"{lm.evaluations}, status {lm.status}"
+    )
+    assert lm_evals < adam_evals
+
+
+@pytest.mark.slow  # one compiled LM fit of a tiny scene
+def test_scene_fit_with_ties():
+    import diffcloth as dc
+    from diffcloth import config as cfg
+    from diffcloth import scene
+
+    sc = scene.build_scene(cfg.parse_config(TINY), dtype=jnp.float64)
+    targets = dc.fit.make_targets(sc, {"stretch": 40.0, "shear": 40.0, "bend": 4e-3})
+    res = dc.fit.fit(
+        sc,
+        targets,
+        ["stretch", "shear", "bend"],
+        steps=30,
+        init={"stretch": 25.0},
+        loss="pyramid",
+        progress=False,
+        ties={"shear": "stretch", "bend": "1e-4 * stretch"},
+    )
+    assert set(res.params) == {"stretch", "shear", "bend"}
+    assert float(res.params["shear"]) == pytest.approx(float(res.params["stretch"]))
+    assert float(res.params["bend"]) == pytest.approx(1e-4 * float(res.params["stretch"]))
+    assert float(res.params["stretch"]) == pytest.approx(40.0, rel=0.01), res.message
+    assert res.history.params["shear"].shape == res.history.params["stretch"].shape
