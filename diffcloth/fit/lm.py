@@ -82,8 +82,10 @@ def _compiled(residual_fn, cons_items, batched: bool):
         def g(v):
             return jnp.ravel(residual_fn(to_physical(unravel(v), cons), *loss_args, *stage_args))
 
-        r, jvp_fn = jax.linearize(g, z)
-        jac = jax.vmap(jvp_fn, in_axes=1, out_axes=1)(jnp.eye(z.size, dtype=z.dtype))
+        # one forward pass carrying n tangents (the primal is computed once, unbatched)
+        r, jac = jax.vmap(lambda t: jax.jvp(g, (z,), (t,)), out_axes=(None, 1))(
+            jnp.eye(z.size, dtype=z.dtype)
+        )
         return r + jac @ (flat - z), jac
 
     def init(y, args, step_size):
@@ -148,7 +150,7 @@ def _forward_mode(fn):
 def _probe(init_fn, step_fn, raw, args, batched, n):
     """One solver step at `raw` (always accepted): (state, loss (n,), max diag J^T J (n,),
     finite (n,), J). Costs one evaluation; compiles nothing beyond the step."""
-    size = jnp.ones((n,)) if batched else jnp.asarray(1.0)
+    size = jnp.asarray(np.ones(n) if batched else np.float64(1.0))  # as the real init: strong
     state = init_fn(raw, args, size)
     if batched:
         out = step_fn(raw, state, args, jnp.ones((n,), bool))
@@ -302,7 +304,7 @@ def _run_lm(
                 break
             lam0 = s.lm_tau * np.where(diag > 0, diag, 1.0)
             size = 1.0 / lam0
-            state = init_fn(raw, args, jnp.asarray(size if batched else size[0]))
+            state = init_fn(raw, args, jnp.asarray(size if batched else np.float64(size[0])))
             budget = s.steps if last_stage else min(s.lm_stage_steps, s.steps)
             ref = loss0.copy()
             stall = np.zeros(n, int)
