@@ -75,7 +75,7 @@ def _compiled(residual_fn, cons_items, batched: bool):
     solver = optx.LevenbergMarquardt(rtol=1e-7, atol=1e-12)
 
     def fn(y, args):
-        loss_args, stage_args = args
+        loss_args, stage_args, (anchor, sqrt_mu) = args
         flat, unravel = ravel_pytree(y)
         z = jax.lax.stop_gradient(flat)
 
@@ -86,7 +86,10 @@ def _compiled(residual_fn, cons_items, batched: bool):
         r, jac = jax.vmap(lambda t: jax.jvp(g, (z,), (t,)), out_axes=(None, 1))(
             jnp.eye(z.size, dtype=z.dtype)
         )
-        return r + jac @ (flat - z), jac
+        # prior rows sqrt(mu) (y - anchor): hold parameters the stage cannot determine (mu = 0 in
+        # the final stage)
+        prior = sqrt_mu.astype(flat.dtype) * (flat - anchor.astype(flat.dtype))
+        return jnp.concatenate([r + jac @ (flat - z), prior]), jac
 
     def init(y, args, step_size):
         f_struct, aux_struct = jax.eval_shape(lambda: fn(y, args))
@@ -115,7 +118,7 @@ def _compiled(residual_fn, cons_items, batched: bool):
 
     def masked_step(y, state, args, active):
         ax = eqx.if_array(0)
-        out = eqx.filter_vmap(step, in_axes=(ax, ax, None))(y, state, args)
+        out = eqx.filter_vmap(step, in_axes=(ax, ax, (None, None, 0)))(y, state, args)
         y_new, state_new = out[0], out[1]
 
         def keep(new, old):
@@ -129,7 +132,9 @@ def _compiled(residual_fn, cons_items, batched: bool):
         return (y_new, state_new) + out[2:]
 
     return (
-        _forward_mode(eqx.filter_jit(eqx.filter_vmap(init, in_axes=(eqx.if_array(0), None, 0)))),
+        _forward_mode(
+            eqx.filter_jit(eqx.filter_vmap(init, in_axes=(eqx.if_array(0), (None, None, 0), 0)))
+        ),
         _forward_mode(eqx.filter_jit(masked_step)),
     )
 
@@ -168,10 +173,12 @@ def lm_jacobian(residual_fn, params, constraints=None, *, loss_args=(), stage_ar
     cons = make_constraints(names, constraints)
     init_fn, step_fn = _compiled(residual_fn, tuple(sorted(cons.items())), False)
     raw = {k: _as_float(v) for k, v in to_raw(_check_init(params, "params"), cons).items()}
+    flat = ravel_pytree(raw)[0]
+    prior = (jnp.zeros_like(flat), jnp.zeros((), flat.dtype))
     state, _, _, _, jac = _probe(
-        init_fn, step_fn, raw, (tuple(loss_args), tuple(stage_args)), False, 1
+        init_fn, step_fn, raw, (tuple(loss_args), tuple(stage_args), prior), False, 1
     )
-    return np.asarray(state.f_info.residual), np.asarray(jac)
+    return np.asarray(state.f_info.residual)[: jac.shape[0]], np.asarray(jac)
 
 
 class _Interrupted(Exception):
@@ -275,7 +282,11 @@ def _run_lm(
     try:
         for si, stage_args in enumerate(stages):
             last_stage = si == len(stages) - 1
-            args = (loss_args, stage_args)
+            flat_start = (
+                ravel_pytree(raw)[0] if not batched else jax.vmap(lambda r: ravel_pytree(r)[0])(raw)
+            )
+            zero_mu = jnp.zeros((n,) if batched else (), flat_start.dtype)
+            args = (loss_args, stage_args, (flat_start, zero_mu))
             # Restart each stage from each start's best point so far.
             if si > 0:
                 for kname in names:
@@ -302,6 +313,12 @@ def _run_lm(
                 )
             if not active.any():
                 break
+            if not last_stage and s.lm_prior > 0:
+                # coarse stages: a prior pulling towards the stage's start point, of weight
+                # lm_prior * max diag(J^T J), keeps parameters this stage cannot see in place
+                mu = s.lm_prior * np.where(diag > 0, diag, 1.0)
+                sqrt_mu = jnp.asarray(np.sqrt(mu) if batched else np.sqrt(mu[0]), flat_start.dtype)
+                args = (loss_args, stage_args, (flat_start, sqrt_mu))
             lam0 = s.lm_tau * np.where(diag > 0, diag, 1.0)
             size = 1.0 / lam0
             state = init_fn(raw, args, jnp.asarray(size if batched else np.float64(size[0])))

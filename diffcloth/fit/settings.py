@@ -44,6 +44,10 @@ class FitSettings:
         this and the loss changed by less than lm_ftol (relative).
       lm_stage_steps: step budget of each coarse stage of the schedule.
       lm_tau: initial damping lambda0 = tau * max diag(J^T J) (Marquardt's rule).
+      lm_prior: coarse stages add residuals sqrt(mu) (raw - raw at the stage start), mu =
+        lm_prior * max diag(J^T J): a parameter the stage barely sees (e.g. bending before the
+        cloth meets the sphere) stays put instead of wandering along a flat direction. The final
+        stage has no prior. 0 disables.
       stages: coarse-to-fine stages (`diffcloth.fit.schedule.make_schedule` spec: None = the
         default, "none", a Schedule or a list of {min_level, frames} tables).
     Multistart:
@@ -72,6 +76,7 @@ class FitSettings:
     lm_ftol: float = 1e-6
     lm_stage_steps: int = 12
     lm_tau: float = 1e-3
+    lm_prior: float = 1e-2
     stages: Any = None
     # multistart
     multistart: int = 1
@@ -90,7 +95,7 @@ class FitSettings:
                 raise ValueError(
                     f"{name}={v!r} must be an integer >= {0 if name == 'steps' else 1}"
                 )
-        for name in ("lm_xtol", "lm_ftol", "lm_tau", "spread", "tol"):
+        for name in ("lm_xtol", "lm_ftol", "lm_tau", "lm_prior", "spread", "tol"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}={v!r} must be a finite number >= 0")
