@@ -199,6 +199,7 @@ def _run_lm(
     hook: Callable[[int, dict], Any] | None,
     devices=None,
     stop=None,
+    priors=None,
 ) -> tuple[list[FitResult], float]:
     s = settings
     names = list(init_phys)
@@ -238,11 +239,13 @@ def _run_lm(
     stage_log: list[dict] = []
     from diffcloth.fit.loop import _progress_bar
 
-    def record(loss, y, stage):
+    def record(loss, y, stage, force=False):
         hist_loss.append(loss)
         hist_params.append(phys_of(y))
         hist_wall.append(time.perf_counter() - t0)
         hist_stage.append(stage)
+        if force:
+            return
         yh = {k: host(v) for k, v in y.items()}
         for i in range(n):
             if active[i] and np.isfinite(loss[i]) and loss[i] < best_loss[i]:
@@ -286,7 +289,8 @@ def _run_lm(
                 ravel_pytree(raw)[0] if not batched else jax.vmap(lambda r: ravel_pytree(r)[0])(raw)
             )
             zero_mu = jnp.zeros((n,) if batched else (), flat_start.dtype)
-            args = (loss_args, stage_args, (flat_start, zero_mu))
+            prior0 = (flat_start, zero_mu)
+            args = (loss_args, stage_args, prior0)
             # Restart each stage from each start's best point so far.
             if si > 0:
                 for kname in names:
@@ -313,13 +317,14 @@ def _run_lm(
                 )
             if not active.any():
                 break
-            if not last_stage and s.lm_prior > 0:
+            if not last_stage and s.lm_prior > 0 and (priors is None or priors[si]):
                 # coarse stages: a prior pulling towards the stage's start point, of weight
                 # lm_prior * max diag(J^T J), keeps parameters this stage cannot see in place
                 mu = s.lm_prior * np.where(diag > 0, diag, 1.0)
                 sqrt_mu = jnp.asarray(np.sqrt(mu) if batched else np.sqrt(mu[0]), flat_start.dtype)
                 args = (loss_args, stage_args, (flat_start, sqrt_mu))
-            lam0 = s.lm_tau * np.where(diag > 0, diag, 1.0)
+            last_diag = np.where(diag > 0, diag, 1.0)
+            lam0 = s.lm_tau * last_diag
             size = 1.0 / lam0
             state = init_fn(raw, args, jnp.asarray(size if batched else np.float64(size[0])))
             budget = s.steps if last_stage else min(s.lm_stage_steps, s.steps)
@@ -436,6 +441,28 @@ def _run_lm(
             )
             if not active.any():
                 break
+        polish = [i for i in range(n) if status[i] in ("converged", "stalled", "max_steps")]
+        if s.lm_polish and polish and best_raw[polish[0]] is not None:
+            k_global, evaluations = _polish(
+                s,
+                polish,
+                init_fn,
+                step_fn,
+                (loss_args, stages[-1], prior0),
+                batched,
+                n,
+                names,
+                best_raw,
+                best_loss,
+                status,
+                message,
+                host,
+                record,
+                len(stages) - 1,
+                k_global,
+                evaluations,
+                last_diag,
+            )
     except KeyboardInterrupt:
         interrupted = True
         for i in np.flatnonzero(active):
@@ -488,6 +515,92 @@ def _run_lm(
     return results, wall
 
 
+def _polish(
+    s,
+    which,
+    init_fn,
+    step_fn,
+    args,
+    batched,
+    n,
+    names,
+    best_raw,
+    best_loss,
+    status,
+    message,
+    host,
+    record,
+    stage,
+    k_global,
+    evaluations,
+    diag,
+):
+    """Gauss-Newton polish after the last stage: undamped GN steps (the solver's first step with
+    a huge trust radius, lambda = 1e-9 max diag J^T J; no new compilation), each clipped to
+    lm_polish_step in raw units, until the step is below lm_xtol * 10. A contact- or visibility-
+    rugged loss makes the trust region reject every step long before the smooth model's minimum
+    (J^T r = 0); the GN fixed point is that minimum. Used only when it converges; otherwise the
+    best trust-region point stays."""
+    y = {
+        k: np.stack(
+            [best_raw[i][k] if best_raw[i] is not None else best_raw[which[0]][k] for i in range(n)]
+        )
+        for k in names
+    }
+    todo = np.zeros(n, bool)
+    todo[which] = True
+    done = np.zeros(n, bool)
+    size = 1e9 / diag
+    loss_at = np.full(n, np.nan)
+    y_at = None
+    iters = 0
+    for _ in range(s.lm_polish):
+        iters += 1
+        yj = {k: jnp.asarray(v if batched else v[0]) for k, v in y.items()}
+        state = init_fn(yj, args, jnp.asarray(size if batched else np.float64(size[0])))
+        if batched:
+            out = step_fn(yj, state, args, jnp.asarray(todo & ~done))
+        else:
+            out = step_fn(yj, state, args)
+        evaluations += 1
+        k_global += 1
+        loss_at = host(out[2]).astype(float)
+        y_at = {k: v.copy() for k, v in y.items()}
+        step = {k: host(v) - y[k] for k, v in out[1].y_eval.items()}
+        moves = np.array([max(float(np.max(np.abs(step[k][i]))) for k in names) for i in range(n)])
+        for k in names:
+            y[k] = y[k] + np.clip(step[k], -s.lm_polish_step, s.lm_polish_step)
+        newly = todo & ~done & (moves < 10 * s.lm_xtol)
+        done |= newly
+        if np.all(done[todo]):
+            break
+    for i in np.flatnonzero(todo):
+        if done[i] and np.isfinite(loss_at[i]):
+            record_loss = np.full(n, np.nan)
+            record_loss[i] = loss_at[i]
+            best_raw[i] = {k: y_at[k][i] for k in names}
+            best_loss[i] = loss_at[i]
+            status[i] = "converged"
+            message[i] = (message[i] + "; " if message[i] else "") + (
+                f"then a Gauss-Newton polish reached the smooth model's minimum (J^T r = 0) in "
+                f"{iters} steps (loss {loss_at[i]:.4g} there)"
+            )
+        else:
+            message[i] = (message[i] + "; " if message[i] else "") + (
+                f"a Gauss-Newton polish did not settle in {s.lm_polish} steps: kept the best "
+                "trust-region point"
+            )
+    if np.any(done & todo):
+        rec = np.where(done & todo, loss_at, np.nan)
+        record(
+            rec,
+            {k: jnp.asarray(v if batched else v[0]) for k, v in y_at.items()},
+            stage,
+            force=True,
+        )
+    return k_global, evaluations
+
+
 def _settings_and_hook(settings, kwargs):
     hook = kwargs.pop("hook", None)
     stop = kwargs.pop("stop", None)
@@ -517,6 +630,7 @@ def fit_lm(
     loss_args: tuple = (),
     stages: Sequence[tuple] | None = None,
     stage_names: Sequence[str] | None = None,
+    stage_priors: Sequence[bool] | None = None,
     settings: FitSettings | None = None,
     **kwargs,
 ) -> FitResult:
@@ -528,6 +642,8 @@ def fit_lm(
       init: initial physical values. constraints: as in `fit_params`.
       loss_args: jit arguments shared by all stages (e.g. the target video).
       stages: list of argument tuples, one per coarse-to-fine stage (same shapes); None: one stage.
+      stage_priors: per stage, whether the coarse-stage prior (settings.lm_prior) applies
+        (default: every stage but the last).
       settings: FitSettings (steps, lm_patience, lm_xtol, lm_ftol, lm_stage_steps, lm_tau,
         loss_tol, progress, callback); keyword arguments naming its fields override it.
       hook (keyword): `hook(step, info)` after every LM step (info: step, stage, loss, params, raw,
@@ -555,6 +671,7 @@ def fit_lm(
         stage_names=stage_names,
         hook=hook,
         stop=stop,
+        priors=stage_priors,
     )
     return results[0]
 
@@ -567,6 +684,7 @@ def fit_lm_multistart(
     loss_args: tuple = (),
     stages: Sequence[tuple] | None = None,
     stage_names: Sequence[str] | None = None,
+    stage_priors: Sequence[bool] | None = None,
     settings: FitSettings | None = None,
     **kwargs,
 ) -> MultiStartResult:
@@ -592,6 +710,7 @@ def fit_lm_multistart(
         hook=hook,
         devices=s.devices if s.devices and s.devices > 1 else None,
         stop=stop,
+        priors=stage_priors,
     )
     losses = np.array([r.loss if np.isfinite(r.loss) else np.inf for r in results])
     return MultiStartResult(results=results, best_index=int(np.argmin(losses)), wall_s=wall)

@@ -139,8 +139,9 @@ def _lm_stages(scene, loss: str, schedule):
     levels = num_pyramid_levels(scene.image_shape, sched.num_levels)
     frames = scene.video_shape[1]
     dtype = np.dtype(scene.material.stretch.dtype)
-    args, names = [], []
+    args, names, priors = [], [], []
     for st in list(sched.stages) + [None]:
+        priors.append(st is not None and st.frames < 1.0)  # a frame window hides parameters
         lw, fw = stage_weights(loss, levels, frames, st, dtype)
         args.append((jnp.asarray(lw), jnp.asarray(fw)))
         if st is None:
@@ -148,7 +149,7 @@ def _lm_stages(scene, loss: str, schedule):
         else:
             nf = int(np.count_nonzero(fw))
             names.append(f"levels>={st.min_level}, frames 1-{nf}")
-    return args, names, levels
+    return args, names, levels, priors
 
 
 def fit(
@@ -263,12 +264,13 @@ def fit(
                     guess[n] = v + s.spread * 0.1 * rng.standard_normal(np.shape(v))
             inits.append(guess)
     if chosen == "lm":
-        stage_args, stage_names, levels = _lm_stages(scene, loss, s.stages)
+        stage_args, stage_names, levels, priors = _lm_stages(scene, loss, s.stages)
         res_fn = _residual_fn(levels, tie_set)
         common = dict(
             loss_args=(targets, scene),
             stages=stage_args,
             stage_names=stage_names,
+            stage_priors=priors,
             settings=s,
             hook=hook,
             stop=stop,

@@ -48,6 +48,9 @@ class FitSettings:
         lm_prior * max diag(J^T J): a parameter the stage barely sees (e.g. bending before the
         cloth meets the sphere) stays put instead of wandering along a flat direction. The final
         stage has no prior. 0 disables.
+      lm_polish: at most this many undamped Gauss-Newton steps after the last stage (each
+        clipped to lm_polish_step in raw units); the fixed point replaces the trust-region result
+        when the steps settle (`lm._polish`). 0 disables.
       stages: coarse-to-fine stages (`diffcloth.fit.schedule.make_schedule` spec: None = the
         default, "none", a Schedule or a list of {min_level, frames} tables).
     Multistart:
@@ -77,6 +80,8 @@ class FitSettings:
     lm_stage_steps: int = 12
     lm_tau: float = 1e-3
     lm_prior: float = 1e-2
+    lm_polish: int = 10
+    lm_polish_step: float = 0.05
     stages: Any = None
     # multistart
     multistart: int = 1
@@ -89,13 +94,12 @@ class FitSettings:
     def __post_init__(self):
         if self.method not in METHODS:
             raise ValueError(f"method={self.method!r} is not one of {METHODS}")
-        for name in ("steps", "lm_patience", "lm_stage_steps", "multistart"):
+        for name in ("steps", "lm_patience", "lm_stage_steps", "multistart", "lm_polish"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "steps" else 1):
-                raise ValueError(
-                    f"{name}={v!r} must be an integer >= {0 if name == 'steps' else 1}"
-                )
-        for name in ("lm_xtol", "lm_ftol", "lm_tau", "lm_prior", "spread", "tol"):
+            low = 0 if name in ("steps", "lm_polish") else 1
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ValueError(f"{name}={v!r} must be an integer >= {low}")
+        for name in ("lm_xtol", "lm_ftol", "lm_tau", "lm_prior", "lm_polish_step", "spread", "tol"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}={v!r} must be a finite number >= 0")
