@@ -340,6 +340,8 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
         devices=settings.devices,
         seed=settings.seed,
         patience=settings.patience,
+        lm_patience=settings.lm_patience,
+        lm_stage_steps=settings.lm_stage_steps,
         progress=progress,
         checkpoint_path=tmp / "checkpoint.npz",
         checkpoint_every=checkpoint_every,

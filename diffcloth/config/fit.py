@@ -59,6 +59,7 @@ class FitSettings:
     ties: Mapping[str, Any] | None = None
     stages: Any = None
     lm_patience: int = 6
+    lm_stage_steps: int = 20
 
     def engine(self, **runtime):
         """The loop settings (`diffcloth.fit.settings.FitSettings`) of this [fit] section: the
@@ -106,6 +107,9 @@ def _parse_engine(t: Mapping[str, Any], free) -> dict:
             ) from None
         out["stages"] = stages
     out["lm_patience"] = cfg.get_number(t, "lm_patience", 6, where=w, lo=1, hi=1000, integer=True)
+    out["lm_stage_steps"] = cfg.get_number(
+        t, "lm_stage_steps", 20, where=w, lo=1, hi=1000, integer=True
+    )
     return out
 
 
