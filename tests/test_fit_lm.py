@@ -322,3 +322,40 @@ def test_scene_fit_with_ties():
     assert float(res.params["bend"]) == pytest.approx(1e-4 * float(res.params["stretch"]))
     assert float(res.params["stretch"]) == pytest.approx(40.0, rel=0.01), res.message
     assert res.history.params["shear"].shape == res.history.params["stretch"].shape
+
+
+def test_fit_config_keys_method_ties_stages():
+    from diffcloth.config import ConfigError
+    from diffcloth.config.fit import parse_fit
+
+    base = {"free": ["stretch", "shear", "bend"]}
+    truth = {"stretch": 40.0}
+    fs = parse_fit(
+        {
+            "fit": {
+                **base,
+                "method": "lm",
+                "ties": {"shear": "stretch"},
+                "stages": [{"min_level": 2, "frames": 0.5}],
+                "lm_stage_steps": 9,
+            },
+            "truth": truth,
+        }
+    )
+    eng = fs.engine(progress=False)
+    assert (eng.method, eng.lm_stage_steps, eng.ties, eng.progress) == (
+        "lm",
+        9,
+        {"shear": "stretch"},
+        False,
+    )
+    assert eng.stages == [{"min_level": 2, "frames": 0.5}]
+    for bad, match in (
+        ({"method": "newton"}, "method"),
+        ({"ties": {"shear": "stretch + 1"}}, "ties.shear"),
+        ({"ties": {"shear": "density"}}, "must be free"),
+        ({"stages": [{"min_level": 2, "frames": 2.0}]}, "stages"),
+        ({"lm_stage_steps": 0}, "lm_stage_steps"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            parse_fit({"fit": {**base, **bad}, "truth": truth})
