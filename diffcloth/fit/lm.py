@@ -539,8 +539,8 @@ def _polish(
     a huge trust radius, lambda = 1e-9 max diag J^T J; no new compilation), each clipped to
     lm_polish_step in raw units, until the step is below lm_xtol * 10. A contact- or visibility-
     rugged loss makes the trust region reject every step long before the smooth model's minimum
-    (J^T r = 0); the GN fixed point is that minimum. Used only when it converges; otherwise the
-    best trust-region point stays."""
+    (J^T r = 0); the GN fixed point is that minimum. Used only when the steps settle and its loss
+    is at most twice the trust-region best; otherwise the best trust-region point stays."""
     y = {
         k: np.stack(
             [best_raw[i][k] if best_raw[i] is not None else best_raw[which[0]][k] for i in range(n)]
@@ -575,7 +575,7 @@ def _polish(
         if np.all(done[todo]):
             break
     for i in np.flatnonzero(todo):
-        if done[i] and np.isfinite(loss_at[i]):
+        if done[i] and np.isfinite(loss_at[i]) and loss_at[i] <= 2.0 * best_loss[i]:
             record_loss = np.full(n, np.nan)
             record_loss[i] = loss_at[i]
             best_raw[i] = {k: y_at[k][i] for k in names}
@@ -584,6 +584,12 @@ def _polish(
             message[i] = (message[i] + "; " if message[i] else "") + (
                 f"then a Gauss-Newton polish reached the smooth model's minimum (J^T r = 0) in "
                 f"{iters} steps (loss {loss_at[i]:.4g} there)"
+            )
+        elif done[i]:
+            message[i] = (message[i] + "; " if message[i] else "") + (
+                f"a Gauss-Newton polish settled at loss {loss_at[i]:.4g}, more than twice the "
+                f"trust-region best {best_loss[i]:.4g} (a rugged loss biases the smooth model): "
+                "kept the trust-region point"
             )
         else:
             message[i] = (message[i] + "; " if message[i] else "") + (
