@@ -86,7 +86,7 @@ def meta(script: str, **extra) -> dict:
         dtype=str(jnp.zeros(()).dtype),
         cpus=os.cpu_count(),
         load_1min=None if load is None else round(load, 2),
-        utc=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         **extra,
     )
 

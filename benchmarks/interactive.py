@@ -36,7 +36,9 @@ ROOT = Path(__file__).resolve().parent.parent
 def setup(size: int, warm_frames: int = 20):
     scene = load_scene(ROOT / "configs" / "drape.toml", dtype=jnp.float32)
     cam = dataclasses.replace(scene.cameras[0], width=size, height=size)
-    textures = scene.textures if scene.textures is not None else T.default_textures(dtype=jnp.float32)
+    textures = (
+        scene.textures if scene.textures is not None else T.default_textures(dtype=jnp.float32)
+    )
     traj = jax.jit(
         lambda m: physics.rollout(
             scene.net,

@@ -9,6 +9,42 @@ import time
 from pathlib import Path
 
 
+def check_config(path, command: str = "render"):
+    """The checks `diffcloth COMMAND CONFIG` runs before any work, without running it: the config
+    (ConfigError), the memory estimate (MemoryLimitError) and, for render and fit, the Scene and
+    the [truth]/[fit.initial] values against it. Returns the Scene (or the Config for simulate).
+    """
+    from diffcloth import memory
+    from diffcloth.config import ConfigError, load_config
+    from diffcloth.scene import build_scene
+
+    if command not in ("simulate", "render", "fit"):
+        raise ValueError(f"command={command!r}; allowed: simulate, render, fit")
+    config = load_config(path)
+    if command == "fit" and config.fit is None:
+        raise ConfigError(f"{path}: missing [fit] section")
+    multistart = config.fit.multistart if command == "fit" else 1
+    memory.check_memory(
+        memory.estimate_memory(memory.JobSizes.from_config(config), command,
+                               multistart=multistart),  # fmt: skip
+        f"{command} {path}",
+    )
+    if command == "simulate":
+        from diffcloth.config import build_physics
+        from diffcloth.scene import build_bodies
+
+        build_physics(config)
+        build_bodies(config)
+        return config
+    scene = build_scene(config)
+    if command == "fit":
+        from diffcloth.experiment import _check_values
+
+        _check_values(scene, config.fit.truth, "truth")
+        _check_values(scene, config.fit.initial, "fit.initial")
+    return scene
+
+
 def _err(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr, flush=True)
 
@@ -38,15 +74,18 @@ def _simulate(args) -> int:
     _check_positive("--chunk", args.chunk)
     _check_positive("--level", args.level, 2)
     config = load_config(args.config)
+    num_frames = config.sim.num_frames if args.frames is None else args.frames
+    memory.check_memory(
+        memory.estimate_memory(
+            memory.JobSizes.from_config(config, num_frames=num_frames), "simulate",
+            chunk=args.chunk,
+        ),
+        f"simulating {num_frames} frames of a {config.net.rows}x{config.net.cols} net",
+        hint="lower num_frames (--frames) or the net size",
+    )  # fmt: skip
     scene = build_physics(config)
     bodies, two_way = build_bodies(config)
-    num_frames = scene.num_frames if args.frames is None else args.frames
     net, sim, material = scene.net, scene.sim, scene.material
-    memory.check_memory(
-        memory.estimate_memory(_SizeView(scene, num_frames), "simulate", chunk=args.chunk),
-        f"simulating {num_frames} frames of a {net.rows}x{net.cols} net",
-        hint="lower num_frames (--frames) or the net size",
-    )
     out = OutputDir(args.out, overwrite=args.overwrite)
     print(
         f"diffcloth simulate {args.config}: net {net.rows}x{net.cols}, {num_frames} frames, "
@@ -137,13 +176,6 @@ def _simulate(args) -> int:
     return 0
 
 
-class _SizeView:
-    """What `memory.estimate_memory` reads of a scene, for a physics-only scene."""
-
-    def __init__(self, phys, num_frames):
-        self.material, self.net, self.num_frames = phys.material, phys.net, num_frames
-
-
 def _force_host_devices(n: int) -> None:
     """Let JAX's CPU backend expose `n` devices (no effect on GPUs), unless XLA_FLAGS already sets it.
 
@@ -176,17 +208,20 @@ def _render(args) -> int:
 
         raise UsageError(f"--fps must be in (0, 1000), got {args.fps}")
     config = load_config(args.config)
+    sizes = memory.JobSizes.from_config(config, size=args.size)
+    memory.check_memory(
+        memory.estimate_memory(sizes, "render", chunk=args.chunk),
+        f"rendering {sizes.num_frames // sizes.frame_stride} frames from {sizes.cameras} "
+        f"camera(s) at {sizes.width}x{sizes.height} (net {sizes.rows}x{sizes.cols})",
+        hint="lower the image size (--size, [render] width/height), --chunk, num_frames or the "
+        "net size",
+    )
     overrides = {}
     if args.size is not None:
         overrides.update(width=args.size, height=args.size)
     scene = build_scene(config, overrides=overrides or None)
     T, k = scene.num_frames, scene.frame_stride
     h, w = scene.image_shape
-    memory.check_memory(
-        memory.estimate_memory(scene, "render", chunk=args.chunk),
-        f"rendering {T // k} frames from {len(scene.cameras)} camera(s) at {w}x{h}",
-        hint="lower the image size (--size, [render] width/height), --chunk or num_frames",
-    )
     out = OutputDir(args.out, overwrite=args.overwrite)
     print(
         f"diffcloth render {args.config}: {T} frames (every {k}), {len(scene.cameras)} camera(s) "
@@ -443,7 +478,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--host", default="127.0.0.1", help="address to serve on (default: local only)")
     v.add_argument("--port", type=int, default=8080)
     v.add_argument("--export", metavar="HTML", help="write a self-contained recording instead")
-    v.add_argument("--side-by-side", action="store_true", help="--export: target beside the fit")
+    v.add_argument("--overlay", action="store_true", help="--export: a fit's target over the fit")
     v.add_argument("--level", type=int, default=None, help="tessellation level of the 3D cloth")
     v.add_argument("--size", type=int, default=256, help="image size of the render panel")
     v.add_argument("--paused", action="store_true", help="start paused at the last frame")
@@ -457,6 +492,15 @@ def main(argv=None) -> int:
     interrupted. `--debug` shows the traceback instead."""
     args = build_parser().parse_args(argv)
     debug = getattr(args, "debug", False)
+    import warnings
+
+    shown = warnings.showwarning
+    if not debug:  # warnings as one line each, like the errors
+
+        def one_line(message, category, filename, lineno, file=None, line=None):
+            print(f"warning: {message}", file=sys.stderr, flush=True)
+
+        warnings.showwarning = one_line
     try:
         from diffcloth.runtime import cache_disabled, enable_compilation_cache
 
@@ -468,14 +512,24 @@ def main(argv=None) -> int:
                 print(f"warning: compilation cache disabled ({err})", file=sys.stderr)
         return args.func(args)
     except KeyboardInterrupt:
+        _discard()
         if debug:
             raise
         print("\ninterrupted (nothing written)", file=sys.stderr)
         return 130
     except Exception as err:  # noqa: BLE001  (one line for the user; --debug for the trace)
+        _discard()
         if debug:
             raise
         return _report_error(err)
+    finally:
+        warnings.showwarning = shown
+
+
+def _discard() -> None:
+    from diffcloth.outdir import discard_all
+
+    discard_all()
 
 
 def _report_error(err: Exception) -> int:

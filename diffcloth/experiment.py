@@ -246,17 +246,17 @@ def run_fit_config(
     if devices is not None:
         check_devices(devices, settings.multistart, "--devices")
         settings = dataclasses.replace(settings, devices=devices)
-    sc = scene.build_scene(config)
-    _check_values(sc, settings.truth, "truth")
-    _check_values(sc, settings.initial, "fit.initial")
-    est = memory.estimate_memory(sc, "fit", multistart=settings.multistart)
+    sizes = memory.JobSizes.from_config(config)
     memory.check_memory(
-        est,
-        f"fitting {config_path.name} ({sc.num_frames} frames, {len(sc.cameras)} camera(s) "
-        f"{sc.image_shape[1]}x{sc.image_shape[0]}, net {sc.net.rows}x{sc.net.cols}, "
+        memory.estimate_memory(sizes, "fit", multistart=settings.multistart),
+        f"fitting {config_path.name} ({sizes.num_frames} frames, {sizes.cameras} camera(s) "
+        f"{sizes.width}x{sizes.height}, net {sizes.rows}x{sizes.cols}, "
         f"multistart {settings.multistart})",
         hint="lower [render] width/height, [sim] num_frames, the net size or multistart",
     )
+    sc = scene.build_scene(config)
+    _check_values(sc, settings.truth, "truth")
+    _check_values(sc, settings.initial, "fit.initial")
     targets = None
     if settings.targets is not None:
         targets = load_targets(settings, sc)
@@ -356,22 +356,27 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
                 result, status="interrupted", message=next(
                     r.message for r in multi.results if r.status == "interrupted")
             )  # fmt: skip
+    # the checkpoint ends up in out_dir, not in the temporary folder the messages name
+    result = dataclasses.replace(
+        result, message=result.message.replace(str(tmp), str(out.path)),
+        checkpoint_path=str(out.path / "checkpoint.npz"),
+    )  # fmt: skip
     interrupted = result.status == "interrupted"
     diagnosis = None
     if result.status == "nonfinite":  # name the stage where the values stopped being finite
         bad = {k: v[-1] for k, v in result.history.params.items()}
         diagnosis = pipeline.diagnose(sc, bad)
+        lr = f"[fit] learning_rate (now {settings.learning_rate:g})"
         if diagnosis is None:
             diagnosis = (
                 "every stage is finite at the last parameters: the loss or its gradient "
-                f"overflowed; lower [fit] learning_rate (now {settings.learning_rate:g})"
+                f"overflowed; lower {lr}"
             )
-        elif diagnosis.startswith("physics") and pipeline.diagnose(sc, result.initial) is None:
+        elif pipeline.diagnose(sc, result.initial) is None:
             diagnosis = (
-                f"the optimizer stepped to {_fmt_params(bad)}, where the simulation fails "
-                f"({diagnosis.split(' (')[0]}), while the starting values simulate fine: lower "
-                f"[fit] learning_rate (now {settings.learning_rate:g}) or start closer; lower "
-                "[sim] dt only if such values are physical"
+                f"the optimizer stepped to {_fmt_params(bad)}, where the pipeline fails "
+                f"({diagnosis.split(' (')[0]}), while the starting values work: lower {lr} or "
+                "start closer; lower [sim] dt only if such values are physical"
             )
     fitted_video = None
     ident = None

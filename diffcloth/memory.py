@@ -14,16 +14,26 @@ it errs on the high side.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 
-__all__ = ["MemoryLimitError", "check_memory", "estimate_memory", "format_bytes", "memory_limit"]
+__all__ = [
+    "JobSizes",
+    "MemoryLimitError",
+    "check_memory",
+    "estimate_memory",
+    "format_bytes",
+    "memory_limit",
+]
 
-#: bytes per pixel per camera of one rendered frame's working set, in units of the float size
-#: (G-buffer, 2x2-window candidates, shading temporaries); measured, rounded up.
+#: floats per pixel per camera of one rendered frame's working set (G-buffer, 2x2-window
+#: candidates, shading temporaries). XLA's memory analysis of the compiled render of
+#: configs/drape.toml (float32, level 4) gave 1.49 MB at 32x32 and 3.27 MB at 96x96, i.e.
+#: ~54 floats per pixel; 160 leaves room for other shading modes and textures.
 FLOATS_PER_PIXEL = 160
-#: floats per tessellated vertex of one frame (positions, frames, texture coordinates, setup).
-FLOATS_PER_VERTEX = 120
+#: floats per tessellated vertex of one frame (the same measurement gave ~146).
+FLOATS_PER_VERTEX = 200
 #: floats per control-net node per substep kept by a step (forces, springs, solver vectors).
 FLOATS_PER_NODE = 60
 
@@ -96,31 +106,71 @@ def memory_limit() -> tuple[int | None, str]:
     return int(0.9 * host), "90 % of the memory available now"
 
 
-def estimate_memory(
-    scene, job: str = "render", *, multistart: int = 1, chunk: int | None = None, num_frames=None
-) -> int:
-    """Bytes a job on `scene` needs at its peak (an upper estimate, computed from sizes only).
+@dataclasses.dataclass(frozen=True)
+class JobSizes:
+    """The sizes a memory estimate needs (from a Scene or straight from a Config, so a huge net
+    is refused before it is built)."""
 
-    job: "simulate" (trajectory on the host, `chunk` frames at a time on the device), "render"
-    (trajectory + video + `chunk` frames rendered at once), "fit" (forward and backward pass of
-    the video loss, times `multistart`). num_frames overrides the scene's.
+    num_frames: int
+    rows: int
+    cols: int
+    height: int = 1
+    width: int = 1
+    cameras: int = 1
+    frame_stride: int = 1
+    level: int = 4
+    float_bytes: int = 4
+
+    @classmethod
+    def from_scene(cls, scene, num_frames: int | None = None) -> JobSizes:
+        h, w = scene.image_shape
+        return cls(
+            num_frames=int(scene.num_frames if num_frames is None else num_frames),
+            rows=int(scene.net.rows), cols=int(scene.net.cols), height=int(h), width=int(w),
+            cameras=len(scene.cameras), frame_stride=int(scene.frame_stride),
+            level=int(scene.level),
+            float_bytes=8 if str(scene.material.density.dtype) == "float64" else 4,
+        )  # fmt: skip
+
+    @classmethod
+    def from_config(cls, config, *, num_frames=None, size=None, x64=None) -> JobSizes:
+        """From a validated `diffcloth.config.Config`; `size` overrides width and height."""
+        if x64 is None:
+            import jax
+
+            x64 = bool(jax.config.jax_enable_x64)
+        rc = config.render
+        return cls(
+            num_frames=int(config.sim.num_frames if num_frames is None else num_frames),
+            rows=int(config.net.rows), cols=int(config.net.cols),
+            height=int(rc.height if size is None else size),
+            width=int(rc.width if size is None else size),
+            cameras=len(config.cameras), frame_stride=int(rc.frame_stride), level=int(rc.level),
+            float_bytes=8 if x64 else 4,
+        )  # fmt: skip
+
+
+def estimate_memory(sizes, job: str = "render", *, multistart: int = 1, chunk=None) -> int:
+    """Bytes a job needs at its peak (an upper estimate, computed from sizes only).
+
+    sizes: a JobSizes, or a Scene. job: "simulate" (trajectory on the host, `chunk` frames at a
+    time on the device), "render" (trajectory + video + `chunk` frames rendered at once), "fit"
+    (forward and backward pass of the video loss, times `multistart`).
     """
     if job not in ("simulate", "render", "fit"):
         raise ValueError(f"job={job!r}; allowed: 'simulate', 'render', 'fit'")
-    b = 8 if str(scene.material.stretch.dtype) == "float64" else 4
-    T = int(scene.num_frames if num_frames is None else num_frames)
-    nodes = int(scene.net.rows) * int(scene.net.cols)
+    s = sizes if isinstance(sizes, JobSizes) else JobSizes.from_scene(sizes)
+    b, T = s.float_bytes, s.num_frames
+    nodes = s.rows * s.cols
     traj = T * nodes * 6 * b  # x and v per frame
     step = nodes * FLOATS_PER_NODE * b
     if job == "simulate":
         return int(traj + min(T, chunk or T) * nodes * 6 * b + step)
-    h, w = scene.image_shape
-    cams = len(scene.cameras)
-    frames = T // max(1, int(scene.frame_stride))
-    level = int(scene.level)
-    verts = (int(scene.net.rows) * level + 1) * (int(scene.net.cols) * level + 1)
-    per_frame = cams * h * w * FLOATS_PER_PIXEL * b + verts * FLOATS_PER_VERTEX * b
-    video = cams * frames * h * w * 3 * b
+    frames = T // max(1, s.frame_stride)
+    verts = (s.rows * s.level + 1) * (s.cols * s.level + 1)
+    pixels = s.cameras * s.height * s.width
+    per_frame = pixels * FLOATS_PER_PIXEL * b + verts * FLOATS_PER_VERTEX * b
+    video = s.cameras * frames * s.height * s.width * 3 * b
     if job == "render":
         return int(traj + 2 * video + min(frames, chunk or 1) * per_frame + step)
     # fit: trajectory and its cotangent, video, target and cotangent, one frame's forward and

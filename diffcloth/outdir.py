@@ -18,7 +18,15 @@ import shutil
 import tempfile
 from pathlib import Path
 
-__all__ = ["OutputDir", "UsageError"]
+__all__ = ["OutputDir", "UsageError", "discard_all"]
+
+_LIVE: list = []  # OutputDirs not yet committed or discarded (the CLI drops them on any error)
+
+
+def discard_all() -> None:
+    """Discard every temporary folder not yet moved into place (after an error or Ctrl-C)."""
+    for d in list(_LIVE):
+        d.discard()
 
 
 class UsageError(ValueError):
@@ -46,6 +54,13 @@ class OutputDir:
         self.option = option
         self._tmp: Path | None = None
         p = self.path
+        here = Path.cwd().resolve()
+        full = p.resolve()
+        if full == here or full in here.parents or full == Path.home().resolve():
+            raise UsageError(
+                f"{option} {str(path)!r} is the current folder, one of its parents or the home "
+                "folder; give a folder of its own for the results"
+            )
         if p.exists() and not p.is_dir():
             raise UsageError(f"{option} {str(p)!r} is an existing file; give a folder")
         if p.is_dir():
@@ -64,6 +79,7 @@ class OutputDir:
         try:  # the real test of writability (permissions, read-only file systems, root or not)
             p.parent.mkdir(parents=True, exist_ok=True)
             self._tmp = Path(tempfile.mkdtemp(prefix=f".{p.name}.tmp-", dir=p.parent))
+            _LIVE.append(self)
         except OSError as err:
             raise UsageError(
                 f"{option} {str(p)!r}: cannot write next to it in {str(p.parent)!r} "
@@ -87,6 +103,8 @@ class OutputDir:
             os.replace(self.path, old)
         os.replace(tmp, self.path)
         self._tmp = None
+        if self in _LIVE:
+            _LIVE.remove(self)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         return self.path
@@ -96,3 +114,5 @@ class OutputDir:
         if self._tmp is not None:
             shutil.rmtree(self._tmp, ignore_errors=True)
             self._tmp = None
+        if self in _LIVE:
+            _LIVE.remove(self)

@@ -34,6 +34,7 @@ __all__ = [
     "diagnose",
     "first_bad_frame",
     "param_value",
+    "params_in_range",
     "render_frames",
     "rendered_states",
     "simulate",
@@ -126,8 +127,10 @@ def _parameter_ranges() -> dict[str, ParamRange]:
 
     table = {
         name: ParamRange(lo, None, inclusive, True, unit)
-        for name, (lo, inclusive, unit, _) in MATERIAL_FIELDS.items()
+        for fields in (MASS_SPRING_FIELDS, MATERIAL_FIELDS)
+        for name, (lo, inclusive, unit, _) in fields.items()
     }
+    table.update({name: ParamRange(lo, hi) for name, (lo, hi) in NUISANCE_RANGES.items()})
     table.update({name: ParamRange(0.0, None, False) for name in _POSITIVE})
     table.update({name: ParamRange(0.0) for name in _NONNEGATIVE})
     table.update(
@@ -151,7 +154,7 @@ def check_param_values(scene, params: Mapping) -> None:
     check_param_names(params)
     for name, value in params.items():
         old = param_value(scene, name)
-        shape = jnp.shape(value)
+        shape = np.shape(value)  # works for lists and tracers alike
         try:
             np.broadcast_shapes(shape, old.shape)
             ok_shape = np.broadcast_shapes(shape, old.shape) == tuple(old.shape)
@@ -324,8 +327,15 @@ def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False):
     spheres = scene.spheres if spheres is None else spheres
     surf = surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
     if spheres is not None:
-        surf = surface.collide_surface(surf, spheres)
+        surf = surface.collide_surface(surf, spheres, offset=scene.push_out_offset)
     capture = getattr(scene, "capture", None)
+    planes = None
+    if getattr(scene, "draw_planes", False) and scene.colliders is not None:
+        planes = split_colliders(scene.colliders)[0]
+    # shadow maps of this frame, shared by every camera (None when no light casts shadows)
+    maps = render.frame_shadow_maps(
+        surf, scene.lights, spheres=spheres, size=getattr(scene, "shadow_map_size", 256)
+    )
     images, masks = [], []
     for i, camera in enumerate(scene.cameras):
         background = scene.background
@@ -342,6 +352,9 @@ def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False):
             textures=scene.textures,
             background=background,
             return_cloth_mask=True,
+            planes=planes,
+            plane_color=getattr(scene, "plane_color", render.PLANE_COLOR),
+            shadow_maps=maps,
         )
         img = img[..., :3]
         if capture is not None:
@@ -399,10 +412,32 @@ def render_frames(scene, xs: jax.Array, spheres=None, *, with_mask: bool = False
     return jax.tree_util.tree_map(lambda f: jnp.moveaxis(f, 0, 1), frames)
 
 
+def params_in_range(scene) -> jax.Array:
+    """() bool, traceable: every parameter of the scene lies in PARAMETER_RANGES and is finite
+    (the traced twin of `check_param_values`: density 0 or stretch -40 passed inside jit)."""
+    ok = jnp.asarray(True)
+    for name, rng in PARAMETER_RANGES.items():
+        group = PARAMETERS[name][0]
+        if group == "bodies" and not scene.bodies:
+            continue
+        try:
+            v = param_value(scene, name)
+        except ValueError:  # not a parameter of this scene (e.g. the other material model)
+            continue
+        good = jnp.isfinite(v)
+        if rng.lo is not None:
+            good &= v >= rng.lo if rng.lo_inclusive else v > rng.lo
+        if rng.hi is not None:
+            good &= v <= rng.hi if rng.hi_inclusive else v < rng.hi
+        ok &= jnp.all(good)
+    return ok
+
+
 def trajectory_status(scene, traj, bodies=()) -> jax.Array:
-    """() bool, traceable: the cloth trajectory is finite and not blown up (`physics.frames_ok`,
-    which allows a long free fall), and every rigid body stays finite."""
-    ok = physics.trajectory_ok(scene.net, traj, scene.sim, scene.state)
+    """() bool, traceable: the parameters are in range (`params_in_range`), the cloth trajectory
+    is finite and not blown up (`physics.frames_ok`, which allows a long free fall), and every
+    rigid body stays finite."""
+    ok = physics.trajectory_ok(scene.net, traj, scene.sim, scene.state) & params_in_range(scene)
     for b in bodies:
         ok &= jnp.all(jnp.isfinite(b.position)) & jnp.all(jnp.isfinite(b.velocity))
     return ok
@@ -467,9 +502,10 @@ def simulate_and_render(scene, params=None, *, with_mask: bool = False):
     Returns:
       video (num_cameras, T, H, W, 3), linear RGB, T = num_frames // frame_stride: simulated
       frames k, 2k, ... for frame_stride k (the initial state is not drawn), or 0, k, 2k, ...
-      with scene.first_frame = 0 (see `rendered_states`). When the simulation
-      becomes non-finite or blows up the whole video is NaN, so a loss on it is NaN and a fit stops
-      with status "nonfinite"; a blow-up never comes out as a finite picture. Use
+      with scene.first_frame = 0 (see `rendered_states`). When a parameter is out of range
+      (checked eagerly for concrete values, by `params_in_range` for traced ones) or the
+      simulation becomes non-finite or blows up, the whole video is NaN, so a loss on it is NaN
+      and a fit stops with status "nonfinite"; a blow-up never comes out as a finite picture. Use
       `simulate_and_render_checked` for an explicit flag. With with_mask: (video, masks).
     """
     out, ok = _simulate_and_render(scene, params, with_mask)
@@ -495,10 +531,13 @@ def diagnose(scene, params=None) -> str | None:
     """
     from diffcloth.physics.rollout import ADVICE
 
-    scene = apply_params(scene, params)
     for name, value in (params or {}).items():
         if not np.all(np.isfinite(np.asarray(value))):
             return f"parameters: {name} = {np.asarray(value).tolist()} is not finite"
+    try:
+        scene = apply_params(scene, params)
+    except ValueError as err:
+        return f"parameters: {err}"
     traj, bodies = jax.jit(simulate_all)(scene)
     ok = np.asarray(physics.frames_ok(scene.net, traj, scene.sim, scene.state))
     for b in bodies:

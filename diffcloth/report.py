@@ -212,6 +212,12 @@ def write_fit_report(
             f"Images are {enc}; the fit itself compares linear RGB.",
             "",
         ]
+    md += [
+        "3D viewer: [viewer.html](viewer.html), a recording that opens offline; DIR being this "
+        "folder, write it with `diffcloth view DIR --export DIR/viewer.html`, or browse live with "
+        "`diffcloth view DIR` (needs the `view` extra).",
+        "",
+    ]
     if identifiability is not None:
         md += ["## Identifiability", "", format_identifiability(identifiability), ""]
     if extra_sections:

@@ -44,6 +44,11 @@ class Scene:
         image is the initial state (frames 0, k, 2k, ...). The number of images is the same.
       capture: optional `render.Capture`: per-camera exposure gain, small pose error and
         background colour (None: gain 1, no pose error, `background` for every camera).
+      push_out_offset: static, m >= 0; rendered vertices inside a sphere are pushed out to
+        radius + push_out_offset (cloth drawn that far outside the drawn sphere).
+      draw_planes, plane_color: static; draw the plane colliders as matte ground of that linear
+        albedo (shadow receivers).
+      shadow_map_size: static shadow-map size of the lights with shadows (texels).
     """
 
     net: Any
@@ -67,6 +72,10 @@ class Scene:
     two_way: bool = dataclasses.field(default=True, metadata={"static": True})
     first_frame: int = dataclasses.field(default=1, metadata={"static": True})
     capture: Any = None
+    push_out_offset: float = dataclasses.field(default=0.0, metadata={"static": True})
+    draw_planes: bool = dataclasses.field(default=False, metadata={"static": True})
+    plane_color: tuple = dataclasses.field(default=(0.6, 0.6, 0.6), metadata={"static": True})
+    shadow_map_size: int = dataclasses.field(default=256, metadata={"static": True})
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -110,6 +119,8 @@ def _build_lights(lc: cfg.LightsConfig, dtype):
             ambient=lc.ambient,
             directional=tuple((d.direction, d.color, d.intensity) for d in lc.directional),
             point=tuple((p.position, p.color, p.intensity) for p in lc.point),
+            shadows=[d.shadows for d in lc.directional] + [p.shadows for p in lc.point],
+            softness=[d.softness for d in lc.directional] + [p.softness for p in lc.point],
             dtype=dtype,
         )
     except ValueError as err:
@@ -199,6 +210,23 @@ def build_scene(
         bodies=bodies,
         two_way=two_way,
         first_frame=rc.first_frame,
+        push_out_offset=rc.push_out_offset,
+        draw_planes=rc.draw_planes,
+        plane_color=tuple(rc.plane_color),
+        shadow_map_size=rc.shadow_map_size,
+        capture=_build_capture(config.cameras, rc, dtype),
+    )
+
+
+def _build_capture(cameras, rc, dtype):
+    """A render.Capture when a camera sets its own background or exposure, else None."""
+    if all(c.background is None and c.exposure == 1.0 for c in cameras):
+        return None
+    return render.make_capture(
+        len(cameras),
+        exposure=[c.exposure for c in cameras],
+        background=[rc.background if c.background is None else c.background for c in cameras],
+        dtype=dtype,
     )
 
 

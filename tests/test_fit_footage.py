@@ -308,3 +308,24 @@ def test_cloth_mask_by_color():
     img[0, 0] = [0.4, 0.4, 0.4]  # grey floor
     m = footage.cloth_mask_by_color(img, (0.7, 0.15, 0.2))
     assert m.sum() == 4 and m[1, 1] == 1 and m[0, 0] == 0
+
+
+def test_camera_background_and_exposure_config_keys():
+    conf = {
+        **SMALL,
+        "cameras": [
+            {**SMALL["cameras"][0], "background": [0.2, 0.3, 0.4], "exposure": 1.5},
+            SMALL["cameras"][1],
+        ],
+    }
+    sc = scene.build_scene(cfg.parse_config(conf), dtype=jnp.float64)
+    np.testing.assert_allclose(sc.capture.exposure, [1.5, 1.0])
+    np.testing.assert_allclose(sc.capture.background[0], [0.2, 0.3, 0.4])
+    np.testing.assert_allclose(sc.capture.background[1], sc.background)
+    assert scene.build_scene(cfg.parse_config(SMALL), dtype=jnp.float64).capture is None
+    bad = {**SMALL, "cameras": [{**SMALL["cameras"][0], "background": [0.2, 1.3, 0.4]}]}
+    with pytest.raises(cfg.ConfigError, match=r"cameras #0.*background"):
+        cfg.parse_config(bad)
+    bad = {**SMALL, "cameras": [{**SMALL["cameras"][0], "exposure": 0.0}]}
+    with pytest.raises(cfg.ConfigError, match="exposure"):
+        cfg.parse_config(bad)

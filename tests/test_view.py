@@ -141,6 +141,21 @@ def test_cli_view_without_the_extra_says_how_to_install(monkeypatch, capsys, sce
     assert "pip install 'diffcloth[view]'" in err and "viser" in err
 
 
+def test_cli_view_export_and_bad_path(tmp_path, capsys, scene_path, model):
+    pytest.importorskip("viser", reason="the viewer needs the `view` extra: pip install viser")
+    from diffcloth import cli
+
+    out = tmp_path / "rec.html"
+    # same level and image size as the `model` fixture: the compiled function is reused
+    argv = ["view", str(scene_path), "--export", str(out), "--level", "6", "--size", "32"]
+    assert cli.main(argv + ["--no-cache"]) == 0
+    html = out.read_text()
+    assert "__VISER_EMBED_DATA__" in html and html.rstrip().endswith("</html>")
+    assert f"wrote {out}" in capsys.readouterr().out
+    assert cli.main(["view", str(tmp_path / "missing.toml"), "--no-cache"]) == 2
+    assert "no such config file or result folder" in capsys.readouterr().err
+
+
 # ---- the model: frames, re-simulation, forces, cameras, fit folders ------------------------------
 def test_frames_are_the_tessellated_collided_cloth(model):
     from diffcloth import surface
@@ -370,3 +385,23 @@ def test_exported_html_plays_offline(browser, model, tmp_path):
         assert not remote, remote
     finally:
         ctx.close()
+
+
+def test_fit_reports_link_the_viewer_recording(tmp_path):
+    from diffcloth.fit.loop import FitResult, History
+    from diffcloth.report import write_fit_report
+
+    n = 3
+    p = {"bend": np.array(1e-3)}
+    hist = History(
+        loss=np.geomspace(1.0, 1e-3, n), params={"bend": np.full(n, 1e-3)},
+        grad_norm={"bend": np.ones(n)}, wall_s=np.linspace(0.0, 1.0, n),
+    )  # fmt: skip
+    result = FitResult(
+        params=p, raw=p, loss=1e-3, initial=p, history=hist, iterations=n, wall_s=1.0,
+        status="max_steps", message="", best_step=n, last_finite=p,
+    )  # fmt: skip
+    out = tmp_path / "fit"
+    md = write_fit_report(out, result, plots=False)["report"].read_text()
+    assert "[viewer.html](viewer.html)" in md
+    assert "`diffcloth view DIR --export DIR/viewer.html`" in md

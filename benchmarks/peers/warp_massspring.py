@@ -10,10 +10,10 @@ and checks diffcloth's `physics.massspring` model. Only numpy and warp are impor
 
     python benchmarks/peers/warp_massspring.py            # a drape demo, prints one JSON line
 
-Model (every choice is written out in docs/physics.md, "Provot mass-spring"):
-- A flat rows x cols grid of point masses, columns along +x, rows along +z (plane "xz", horizontal,
-  at y = height) or rows downwards along -y (plane "xy", vertical, row 0 on top),
-  centred on (0, height, 0) in x/z (plus `center`). Node (i, j) sits at
+Model (every choice is discussed in docs/physics.md, beside diffcloth's own models):
+- A flat rows x cols grid of point masses, columns along +x, rows along +z (plane "xz", horizontal)
+  or rows downwards along -y (plane "xy", vertical, row 0 on top), centred at
+  (0, height, 0) + center (as diffcloth's `grid_net`). Node (i, j) sits at
   x = -w/2 + j w/(cols-1), z (or -y) = -h/2 + i h/(rows-1).
 - Masses: "uniform" (every node density * w * h / (rows cols)) or "area" (each cell gives a quarter
   of its area to each corner; node mass = density * that area).
@@ -32,7 +32,9 @@ Model (every choice is written out in docs/physics.md, "Provot mass-spring"):
   most (Coulomb, velocity level). The "displacement" rule first sets v = (x_projected - x_prev)/dt
   (x_prev: position before the drift), then applies the same rule.
 
-Parameters (`params` dict; all optional, defaults in DEFAULTS):
+Parameters (`params` dict; all optional, defaults in DEFAULTS). The model's names and defaults
+are those of diffcloth's `[material] model = "provot"` and `[sim]` keys (docs/config.md), so a
+config's values can be passed through unchanged:
   k_struct, k_shear, k_flex    spring stiffness, N/m
   d_struct, d_shear, d_flex    dashpot along each spring, N s/m
   air_damping                  linear air damping per node, N s/m

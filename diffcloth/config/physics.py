@@ -17,9 +17,16 @@ from diffcloth.config._fields import (
     get_number,
     get_vec3,
 )
+from diffcloth.physics.massspring import LUMPINGS, MASS_SPRING_FIELDS, mass_spring_range
 from diffcloth.physics.material import MATERIAL_FIELDS, material_range
 from diffcloth.physics.net import PIN_PRESETS
-from diffcloth.physics.state import INTEGRATORS
+from diffcloth.physics.state import FRICTION_RULES, INTEGRATORS
+
+#: [material] model -> its numeric fields (name -> (lo, inclusive, unit, default)) and range text
+MATERIAL_MODELS = {
+    "continuum": (MATERIAL_FIELDS, material_range),
+    "provot": (MASS_SPRING_FIELDS, mass_spring_range),
+}
 
 # ----------------------------------------------------------------------------- physics sections
 
@@ -40,8 +47,12 @@ class NetConfig:
 
 @dataclasses.dataclass(frozen=True)
 class MaterialConfig:
-    """[material]: per-unit material (see diffcloth.physics.Material)."""
+    """[material]: `model` "continuum" (per-unit material, diffcloth.physics.Material; the
+    default) or "provot" (per-spring mass-spring, diffcloth.physics.MassSpring). Each model reads
+    only its own keys (density and friction are shared); keys of the other model are an error."""
 
+    model: str = "continuum"
+    mass_lumping: str = "auto"
     stretch: float = MATERIAL_FIELDS["stretch"][3]
     shear: float = MATERIAL_FIELDS["shear"][3]
     bend: float = MATERIAL_FIELDS["bend"][3]
@@ -50,6 +61,24 @@ class MaterialConfig:
     drag_normal: float = MATERIAL_FIELDS["drag_normal"][3]
     drag_tangent: float = MATERIAL_FIELDS["drag_tangent"][3]
     friction: float = MATERIAL_FIELDS["friction"][3]
+    k_struct: float = MASS_SPRING_FIELDS["k_struct"][3]
+    k_shear: float = MASS_SPRING_FIELDS["k_shear"][3]
+    k_flex: float = MASS_SPRING_FIELDS["k_flex"][3]
+    d_struct: float = MASS_SPRING_FIELDS["d_struct"][3]
+    d_shear: float = MASS_SPRING_FIELDS["d_shear"][3]
+    d_flex: float = MASS_SPRING_FIELDS["d_flex"][3]
+    air_damping: float = MASS_SPRING_FIELDS["air_damping"][3]
+
+    def fields(self) -> dict[str, float]:
+        """The numeric fields of the chosen model (what its constructor takes)."""
+        return {name: getattr(self, name) for name in MATERIAL_MODELS[self.model][0]}
+
+    @property
+    def lumping(self) -> str:
+        """The mass lumping actually used ("auto": area for continuum, uniform for provot)."""
+        if self.mass_lumping != "auto":
+            return self.mass_lumping
+        return "area" if self.model == "continuum" else "uniform"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +92,8 @@ class SimConfig:
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
     wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
     collision_margin: float = 0.0
+    contact_thickness: float | None = None
+    friction_rule: str = "auto"
     newton_iters: int = 3
     cg_iters: int = 200
     cg_tol: float = 1e-5
@@ -126,9 +157,30 @@ def parse_net(t: Mapping[str, Any]) -> NetConfig:
 
 
 def parse_material(t: Mapping[str, Any]) -> MaterialConfig:
-    check_keys(t, dataclass_keys(MaterialConfig), "material")
+    w = "material"
+    check_keys(t, dataclass_keys(MaterialConfig), w)
+    model = get_choice(t, "model", "continuum", tuple(MATERIAL_MODELS), where=w)
+    lumping = get_choice(t, "mass_lumping", "auto", ("auto",) + LUMPINGS, where=w)
+    if model == "continuum" and lumping == "uniform":
+        raise ConfigError(
+            "[material] mass_lumping = 'uniform' needs model = 'provot'; the continuum model "
+            "lumps by area (allowed: auto, area)"
+        )
+    fields, range_text = MATERIAL_MODELS[model]
+    other = sorted(
+        k
+        for m, (f, _) in MATERIAL_MODELS.items()
+        if m != model
+        for k in f
+        if k in t and k not in fields
+    )
+    if other:
+        raise ConfigError(
+            f"[material] {', '.join(other)} belong(s) to another model; with model = {model!r} "
+            f"the keys are: {', '.join(fields)}"
+        )
     values = {}
-    for name, (lo, inclusive, unit, _default) in MATERIAL_FIELDS.items():
+    for name, (lo, inclusive, unit, _default) in fields.items():
         if name in t:
             v = t[name]
             bad = isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)
@@ -137,15 +189,19 @@ def parse_material(t: Mapping[str, Any]) -> MaterialConfig:
             if bad:
                 raise ConfigError(
                     f"[material] {name} = {v!r} is out of range; allowed range "
-                    f"{material_range(name)} {unit}"
+                    f"{range_text(name)} {unit}"
                 )
             values[name] = float(v)
-    return MaterialConfig(**values)
+    return MaterialConfig(model=model, mass_lumping=lumping, **values)
 
 
 def parse_sim(t: Mapping[str, Any]) -> SimConfig:
     w = "sim"
     check_keys(t, dataclass_keys(SimConfig), w)
+    if "contact_thickness" in t and "collision_margin" in t:
+        raise ConfigError(
+            "[sim] contact_thickness and collision_margin name the same thing; give one of them"
+        )
     d = SimConfig()
     return SimConfig(
         dt=get_number(t, "dt", d.dt, where=w, lo=0, lo_inclusive=False),
@@ -157,6 +213,8 @@ def parse_sim(t: Mapping[str, Any]) -> SimConfig:
         gravity=get_vec3(t, "gravity", d.gravity, where=w),
         wind=get_vec3(t, "wind", d.wind, where=w),
         collision_margin=get_number(t, "collision_margin", d.collision_margin, where=w, lo=0),
+        contact_thickness=get_number(t, "contact_thickness", None, where=w, lo=0),
+        friction_rule=get_choice(t, "friction_rule", d.friction_rule, FRICTION_RULES, where=w),
         newton_iters=get_number(t, "newton_iters", d.newton_iters, where=w, lo=1, integer=True),
         cg_iters=get_number(t, "cg_iters", d.cg_iters, where=w, lo=1, integer=True),
         cg_tol=get_number(
@@ -229,13 +287,25 @@ def build_physics(config, dtype=None) -> PhysicsScene:
         wind=s.wind,
         num_substeps=s.num_substeps,
         integrator=s.integrator,
-        collision_margin=s.collision_margin,
+        collision_margin=(
+            s.collision_margin if s.contact_thickness is None else s.contact_thickness
+        ),
+        friction_rule=s.friction_rule,
         newton_iters=s.newton_iters,
         cg_iters=s.cg_iters,
         cg_tol=s.cg_tol,
         dtype=dtype,
     )
-    material = physics.make_material(dtype=dtype, **dataclasses.asdict(config.material))
+    m = config.material
+    if m.model == "provot":
+        if s.integrator != "symplectic":
+            raise ConfigError(
+                "[sim] integrator = 'implicit' supports [material] model = 'continuum' only; "
+                "the provot model runs with integrator = 'symplectic'"
+            )
+        material = physics.make_mass_spring(dtype=dtype, lumping=m.lumping, **m.fields())
+    else:
+        material = physics.make_material(dtype=dtype, **m.fields())
     spheres = [make_sphere(sp.center, sp.radius, dtype=dtype) for sp in config.spheres]
     planes = [make_plane(pl.normal, pl.offset, dtype=dtype) for pl in config.planes]
     colliders = physics.make_colliders(spheres, planes, dtype=dtype) if spheres or planes else None

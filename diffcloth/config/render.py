@@ -38,6 +38,10 @@ class RenderConfig:
     flip: bool = True
     textures: str = "none"
     first_frame: int = 1
+    push_out_offset: float = 0.0
+    draw_planes: bool = False
+    plane_color: tuple = (0.6, 0.6, 0.6)
+    shadow_map_size: int = 256
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +55,8 @@ class CameraConfig:
     projection: str = "perspective"
     near: float = 0.1
     far: float = 100.0
+    background: tuple[float, float, float] | None = None  # None: the [render] background
+    exposure: float = 1.0  # gain on this camera's whole image
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +66,8 @@ class DirectionalLightConfig:
     direction: tuple[float, float, float] = (0.3, 1.0, 0.6)
     color: tuple[float, float, float] = (1.0, 1.0, 1.0)
     intensity: float = 1.0
+    shadows: bool = False
+    softness: float = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +77,8 @@ class PointLightConfig:
     position: tuple[float, float, float] = (0.0, 2.0, 0.0)
     color: tuple[float, float, float] = (1.0, 1.0, 1.0)
     intensity: float = 1.0
+    shadows: bool = False
+    softness: float = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,6 +108,12 @@ def parse_render(t: Mapping[str, Any]) -> RenderConfig:
         flip=get_bool(t, "flip", d.flip, where=w),
         textures=get_choice(t, "textures", d.textures, TEXTURE_CHOICES, where=w),
         first_frame=get_number(t, "first_frame", d.first_frame, where=w, lo=0, hi=1, integer=True),
+        push_out_offset=get_number(t, "push_out_offset", d.push_out_offset, where=w, lo=0),
+        draw_planes=get_bool(t, "draw_planes", d.draw_planes, where=w),
+        plane_color=tuple(get_vec3(t, "plane_color", d.plane_color, where=w)),
+        shadow_map_size=get_number(
+            t, "shadow_map_size", d.shadow_map_size, where=w, lo=8, hi=4096, integer=True
+        ),
     )
 
 
@@ -118,7 +134,13 @@ def _parse_camera(t: Mapping[str, Any], where: str) -> CameraConfig:
         projection=get_choice(t, "projection", d.projection, PROJECTION_KINDS, where=where),
         near=get_number(t, "near", d.near, where=where, lo=0, lo_inclusive=False),
         far=get_number(t, "far", d.far, where=where, lo=0, lo_inclusive=False),
+        background=get_vec3(t, "background", where=where) if "background" in t else None,
+        exposure=get_number(t, "exposure", d.exposure, where=where, lo=0, lo_inclusive=False),
     )
+    if cam.background is not None and not all(0.0 <= v <= 1.0 for v in cam.background):
+        raise ConfigError(
+            f"[{where}] background = {list(cam.background)} must be linear RGB in [0, 1]"
+        )
     if cam.far <= cam.near:
         raise ConfigError(f"[{where}] far = {cam.far} must be larger than near = {cam.near}")
     view = [e - g for e, g in zip(cam.eye, cam.target, strict=True)]
@@ -150,6 +172,13 @@ def parse_cameras(data: Mapping[str, Any]) -> tuple[CameraConfig, ...]:
     return tuple(_parse_camera(t, f"cameras #{i}") for i, t in enumerate(tables))
 
 
+def _softness(e: Mapping[str, Any], default: float, where: str) -> float:
+    from diffcloth.render.lights import SOFTNESS_RANGE
+
+    lo, hi = SOFTNESS_RANGE
+    return get_number(e, "softness", default, where=where, lo=lo, hi=hi)
+
+
 def parse_lights(t: Mapping[str, Any]) -> LightsConfig:
     """Validate [lights] with its [[lights.directional]] and [[lights.point]] entries."""
     w = "lights"
@@ -170,6 +199,8 @@ def parse_lights(t: Mapping[str, Any]) -> LightsConfig:
             direction=get_vec3(e, "direction", d.direction, where=where),
             color=get_vec3(e, "color", d.color, where=where),
             intensity=get_number(e, "intensity", d.intensity, where=where, lo=0),
+            shadows=get_bool(e, "shadows", d.shadows, where=where),
+            softness=_softness(e, d.softness, where),
         )
         if math.hypot(*light.direction) == 0:
             raise ConfigError(f"[{where}] direction = {list(light.direction)} must be non-zero")
@@ -184,6 +215,8 @@ def parse_lights(t: Mapping[str, Any]) -> LightsConfig:
                 position=get_vec3(e, "position", where=where),
                 color=get_vec3(e, "color", d.color, where=where),
                 intensity=get_number(e, "intensity", d.intensity, where=where, lo=0),
+                shadows=get_bool(e, "shadows", d.shadows, where=where),
+                softness=_softness(e, d.softness, where),
             )
         )
     return LightsConfig(

@@ -23,6 +23,7 @@ from diffcloth.fit.footage import (
     scene_residuals,
 )
 from diffcloth.fit.identifiability import Identifiability, format_identifiability, identifiability
+from diffcloth.fit.interrupt import catch_interrupts
 from diffcloth.fit.loop import (
     FitResult,
     History,
@@ -31,6 +32,9 @@ from diffcloth.fit.loop import (
     fit_multistart,
     fit_params,
     load_checkpoint,
+    pack_tree,
+    save_checkpoint,
+    unpack_tree,
 )
 from diffcloth.fit.losses import (
     absolute_error,
@@ -109,6 +113,10 @@ __all__ = [
     "identifiability",
     "image_loss",
     "load_checkpoint",
+    "pack_tree",
+    "save_checkpoint",
+    "unpack_tree",
+    "catch_interrupts",
     "make_constraint",
     "make_constraints",
     "pyramid_loss",

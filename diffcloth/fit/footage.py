@@ -111,7 +111,7 @@ def prepare_targets(
     from diffcloth.fit.losses import validate_targets
     from diffcloth.fit.masks import target_distances
 
-    dtype = dtype or scene.material.stretch.dtype
+    dtype = dtype or scene.material.density.dtype
     video = np.asarray(targets)
     if video.ndim == 4 and len(scene.cameras) == 1:
         video = video[None]

@@ -6,7 +6,7 @@ bodies, the pipeline) can call inside its own `lax.scan`:
     step(net, sim, material, state, colliders=None, *, pin_target=None) -> ClothState
 
 - symplectic: semi-implicit (symplectic) Euler, v += h f(x, v) / m; x += h v. Conditionally stable:
-  h below about 2 sqrt(m_min / k_max) (see `rollout.stable_substep`).
+  h below the limit of `rollout.stable_substep` (docs/physics.md, "Stability estimate").
 - implicit: backward Euler in the velocity, m (v' - v) = h f(x + h v', v'), solved by Newton with
   matrix-free conjugate gradients on a positive semi-definite Newton matrix. Its gradient is taken
   implicitly (`jax.lax.custom_root`, BiCGSTAB on the exact linearisation), not through the iterations.
@@ -29,6 +29,7 @@ from diffcloth.physics.forces import (
     from_planar,
     node_mass,
     to_planar,
+    total_forces_fn,
 )
 from diffcloth.physics.material import Material
 from diffcloth.physics.net import Net
@@ -256,9 +257,11 @@ def step_with_contacts(
     zeros_pi = jnp.zeros((n_p, 3), dtype)
     if sim.integrator == "symplectic":
         safe_mass = jnp.where(free, mass, 1.0)[None]
+        # material-dependent stencil frames built once per frame, outside the substep loop
+        forces = total_forces_fn(net, material, sim.gravity, sim.wind)
 
         def kick(x, v):
-            return v + h * _total_forces(net, material, x, v, sim.gravity, sim.wind) / safe_mass
+            return v + h * forces(x, v) / safe_mass
 
         # Kick-drift order with the drift first in the loop body: iteration s drifts substep s - 1
         # (x += h v, pins, colliders) and then kicks substep s. Each loop output then depends on the

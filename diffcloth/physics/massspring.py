@@ -12,7 +12,8 @@ another engine or a paper directly:
 
 Spring (a, b), e = x_b - x_a, L = |e|, n = e / L: force on a (k (L - L0) + d (v_b - v_a).n) n, the
 opposite on b; zero for L = 0. Air: -air_damping (v - wind) per node. Gravity m g. Masses are
-uniform (total area * density / nodes) or area-lumped (density * net.area). Border springs are not scaled.
+uniform (total area * density / nodes) or area-lumped (density * net.area). Border springs are not
+scaled.
 See docs/physics.md for every modelling choice.
 """
 
@@ -253,7 +254,8 @@ def elastic_energy(net, ms: MassSpring, x):
 def potential_energy(net, ms: MassSpring, x, gravity):
     """Elastic energy plus gravitational energy -sum m g.x, J."""
     mass = node_mass(net, ms)
-    return elastic_energy(net, ms, x) - jnp.sum(mass[..., None] * x * jnp.asarray(gravity))
+    g = jnp.asarray(gravity)[None, None, :]
+    return elastic_energy(net, ms, x) - jnp.sum(mass[..., None] * x * g)
 
 
 def kinetic_energy(net, ms: MassSpring, v):

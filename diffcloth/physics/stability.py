@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth.physics.forces import _total_forces, node_mass
+from diffcloth.physics.forces import _total_forces, autodiff_forces, node_mass
 from diffcloth.physics.material import Material
 from diffcloth.physics.net import Net
 
@@ -119,6 +119,17 @@ def _lanczos_top(matvec, n: int, steps: int, seed: int = 0):
     return float(vals[-1]), np.einsum("ji,j->i", Q[:m], vecs[:, -1], optimize=False)
 
 
+@jax.jit
+def _force_jvps(net, material, gravity, wind, dx, dv):
+    """(-df/dx dx, -df/dv dv) at rest (planar (3, rows, cols)); one compile per net shape/model."""
+    x0 = jnp.moveaxis(net.rest, -1, 0)
+    zero = jnp.zeros_like(x0)
+    f = lambda x, v: _total_forces(net, material, x, v, gravity, wind)
+    _, kx = jax.jvp(lambda x: f(x, zero), (x0,), (dx,))
+    _, cv = jax.jvp(lambda v: f(x0, v), (zero,), (dv,))
+    return -kx, -cv
+
+
 def modal_substep(net: Net, sim, material, *, steps: int = 50) -> float:
     """Stable substep (s) from the stiffest and the most damped mode at rest (see module doc)."""
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
@@ -134,12 +145,7 @@ def modal_substep(net: Net, sim, material, *, steps: int = 50) -> float:
         lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, net
     )
 
-    @jax.jit
-    def jvps(dx, dv):
-        f = lambda x, v: _total_forces(netc, mat, x, v, g, wind)
-        _, kx = jax.jvp(lambda x: f(x, zero), (x0,), (dx,))
-        _, cv = jax.jvp(lambda v: f(x0, v), (zero,), (dv,))
-        return -kx, -cv
+    jvps = lambda dx, dv: _force_jvps(netc, mat, g, wind, dx, dv)
 
     scale = np.broadcast_to(inv_sqrt[None], (3,) + inv_sqrt.shape).ravel()
     shape = x0.shape
@@ -155,8 +161,9 @@ def modal_substep(net: Net, sim, material, *, steps: int = 50) -> float:
 
     n = scale.size
     k_op, c_op = op(0), op(1)
-    lam, u = _lanczos_top(k_op, n, steps)
-    gam, w = _lanczos_top(c_op, n, steps)
-    g_u = float(u @ c_op(u))
-    l_w = float(w @ k_op(w))
+    with autodiff_forces():  # forward mode through the stencil forces (no hand-written VJP)
+        lam, u = _lanczos_top(k_op, n, steps)
+        gam, w = _lanczos_top(c_op, n, steps)
+        g_u = float(u @ c_op(u))
+        l_w = float(w @ k_op(w))
     return min(_limit(lam, g_u), _limit(l_w, gam))

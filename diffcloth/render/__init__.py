@@ -30,6 +30,8 @@ from diffcloth.render.spheres import raycast_spheres
 from diffcloth.render.lights import Appearance, Light, Lights, make_appearance, make_lights
 from diffcloth.render.lights import appearance_fields
 from diffcloth.render.render import render, surface_gbuffer  # the function shadows its module
+from diffcloth.render.render import PLANE_COLOR, frame_shadow_maps
+from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility, sphere_visibility
 from diffcloth.render.shade import MODES as SHADING_MODES
 from diffcloth.render.shade import ShadingBuffer, light_vertices
 from diffcloth.render.textures import (

@@ -153,9 +153,9 @@ def make_lights(
     flags = [shadows] * nl if isinstance(shadows, bool | np.bool_) else list(shadows)
     if len(flags) != nl or not all(isinstance(f, bool | np.bool_) for f in flags):
         raise ValueError(f"shadows must be a bool or {nl} bools (one per light), got {shadows!r}")
-    soft = np.broadcast_to(np.asarray(softness, np.float64), (nl,)) if nl else np.zeros(0)
     if np.ndim(softness) not in (0, 1) or (np.ndim(softness) == 1 and len(softness) != nl):
         raise ValueError(f"softness must be one value or {nl} values, got {softness!r}")
+    soft = np.broadcast_to(np.asarray(softness, np.float64), (nl,))
     lo, hi = SOFTNESS_RANGE
     if not np.all(np.isfinite(soft)) or np.any((soft < lo) | (soft > hi)):
         raise ValueError(f"softness must be in [{lo}, {hi}] degrees, got {soft.tolist()}")

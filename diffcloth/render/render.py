@@ -18,7 +18,8 @@ from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.rays import ray_sphere
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
-from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility
+from diffcloth.render.shadows import ShadowMaps, shadow_visibility
+from diffcloth.render.shadows import shadow_maps as build_shadow_maps
 from diffcloth.render.textures import Textures
 from diffcloth.shapes import Plane, Sphere
 
@@ -187,6 +188,16 @@ def _occluder_mesh(surface, occluders):
     )
 
 
+def frame_shadow_maps(surface, lights: Lights, *, spheres=None, occluders=None, size: int = 256):
+    """Shadow data of one frame: the cloth `surface` (plus `occluders` triangles) as the mesh
+    occluder, `spheres` analytic; None when no light casts shadows (see `shadows.shadow_maps`)."""
+    if not lights.casts_shadows:
+        return None
+    return build_shadow_maps(
+        lights, mesh=_occluder_mesh(surface, occluders), spheres=spheres, size=size
+    )
+
+
 def surface_gbuffer(
     surface,
     camera: Camera,
@@ -291,6 +302,7 @@ def render(
     occluders=None,
     shadow_map_size: int = 256,
     return_cloth_mask: bool = False,
+    shadow_maps: ShadowMaps | None = None,
 ):
     """Rasterize, shade and composite a cloth surface.
 
@@ -316,6 +328,8 @@ def render(
       occluders: optional extra shadow-casting triangle mesh (positions (n, 3), faces (m, 3)),
         e.g. box bodies; differentiable in the positions. (Cast only; drawing is the caller's.)
       shadow_map_size: static shadow-map size in texels (used only by lights with shadows).
+      shadow_maps: optional precomputed `frame_shadow_maps(surface, lights, ...)` (shared by
+        several cameras of one frame); built here when None and a light casts shadows.
       return_cloth_mask: also return the visible cloth coverage (H, W) in [0, 1]: the antialiased
         cloth alpha (soft at silhouettes, so differentiable w.r.t. the geometry there) times the
         part of each pixel not covered by a sphere or plane drawn in front. The image is unchanged.
@@ -330,13 +344,10 @@ def render(
     """
     if shading not in MODES:
         raise ValueError(f"shading must be one of {MODES}, got {shading!r}")
-    maps = None
-    if lights.casts_shadows:
-        maps = shadow_maps(
-            lights,
-            mesh=_occluder_mesh(surface, occluders),
-            spheres=spheres,
-            size=shadow_map_size,
+    maps = shadow_maps
+    if maps is None and lights.casts_shadows:
+        maps = frame_shadow_maps(
+            surface, lights, spheres=spheres, occluders=occluders, size=shadow_map_size
         )
     gb, buf, eye_rays = surface_gbuffer(
         surface,

@@ -65,7 +65,7 @@ class ShadowMaps:
         light's camera (k = shadow-casting lights, directional first), or None without a mesh.
       view, projection: (k, 4, 4) the light cameras.
       texel: (k,) world size of a texel: orthographic, in m; perspective, in m per m of depth.
-      zmin: (k,) smallest occluder view depth (blocker-search extent), no gradient.
+      zmin: (k,) smallest occluder view depth (blocker-search extent).
       casting: static tuple of the light indices (0..nl-1, directional first) that cast shadows.
       num_directional: static count of the casting lights that are directional (the first ones).
       size: static shadow-map size S in texels.
@@ -89,11 +89,12 @@ def _smoothstep(x):
 
 
 def _bound(positions):
-    """Bounding sphere (centre (3,), radius ()) of a point set, without gradient."""
-    p = jax.lax.stop_gradient(positions)
+    """Bounding sphere (centre (3,), radius ()) of a point set. Differentiable (a.e.): the map's
+    framing is part of the sampled function, so its derivative belongs to the true gradient."""
+    p = positions
     lo, hi = jnp.min(p, axis=0), jnp.max(p, axis=0)
     c = 0.5 * (lo + hi)
-    r = jnp.max(safe_norm(p - c, axis=-1))
+    r = jnp.max(safe_norm(p - c[None], axis=-1))
     return c, 1.02 * r + 1e-3
 
 
@@ -110,12 +111,12 @@ def _directional_camera(direction, center, radius, size):
     view = look_at(eye, center, _up_for(l))
     proj = orthographic(-radius, radius, -radius, radius, 0.5 * radius, 3.5 * radius)
     cam = Camera(view, proj, 0.5 * radius, 3.5 * radius, size, size, "orthographic")
-    return cam, jax.lax.stop_gradient(2.0 * radius / size)
+    return cam, 2.0 * radius / size
 
 
 def _point_camera(position, center, radius, size):
     to_c = center - position
-    dist = jax.lax.stop_gradient(safe_norm(to_c))
+    dist = safe_norm(to_c)
     half = jnp.arcsin(jnp.clip(radius / jnp.maximum(dist, 1e-9), 0.0, 0.96)) * 1.05
     half = jnp.minimum(half, jnp.deg2rad(75.0))
     near = jnp.maximum(dist - radius, 0.02 * dist) * 0.9
@@ -123,7 +124,7 @@ def _point_camera(position, center, radius, size):
     view = look_at(position, position + to_c, _up_for(safe_normalize(to_c)))
     proj = perspective(jnp.rad2deg(2.0 * half), 1.0, near, far)
     cam = Camera(view, proj, near, far, size, size, "perspective")
-    return cam, jax.lax.stop_gradient(2.0 * jnp.tan(half) / size)
+    return cam, 2.0 * jnp.tan(half) / size
 
 
 def _render_map(positions, faces, neighbors, cam):
@@ -131,7 +132,7 @@ def _render_map(positions, faces, neighbors, cam):
     fr = rasterize(positions, faces, cam, neighbors=neighbors, silhouette_budget=None)
     cov = fr.triangle_id >= 0
     img = jnp.stack([jnp.where(cov, fr.depth, 0.0), cov.astype(fr.depth.dtype)], axis=-1)
-    zmin = jnp.min(jnp.where(cov, jax.lax.stop_gradient(fr.depth), jnp.inf))
+    zmin = jnp.min(jnp.where(cov, fr.depth, jnp.inf))
     zmin = jnp.where(jnp.isfinite(zmin), zmin, 0.0)
     return antialias(img, fr), zmin
 
@@ -243,7 +244,6 @@ def _map_visibility(tex, view, proj, texel, zmin, tan_t, is_point, pts, nrm, to_
     cam = Camera(view, proj, jnp.zeros((), view.dtype), jnp.ones((), view.dtype), S, S)
     _, z0 = project(pts, cam)
     tx = texel * jnp.where(is_point, jnp.maximum(z0, 1e-6), 1.0)
-    tx = jax.lax.stop_gradient(tx)
     p = pts + (side * NORMAL_OFFSET * tx)[:, None] * nrm
     clip, z = project(p, cam)
     w = clip[:, 3]
@@ -267,7 +267,7 @@ def _map_visibility(tex, view, proj, texel, zmin, tan_t, is_point, pts, nrm, to_
 
     # blocker search over the region the light's disc can reach from the receiver
     search = jnp.clip(tan_t * jnp.maximum(z - zmin, 0.0) / tx, 1.0, MAX_RADIUS)
-    cov, depth, bias = sample(jax.lax.stop_gradient(search), _grid(max(taps - 1, 2), tx.dtype))
+    cov, depth, bias = sample(search, _grid(max(taps - 1, 2), tx.dtype))
     wb = cov * _smoothstep((z[:, None] - bias - depth) / tau[:, None])
     wsum = jnp.sum(wb, axis=-1)
     d_block = safe_div(jnp.sum(wb * depth, axis=-1), wsum)

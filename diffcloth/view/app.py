@@ -133,13 +133,21 @@ class _Scene3D:
                     h.wxyz = m.target.body_orientation[t, i]
 
     def layout(self, side_by_side: bool) -> None:
+        """Target over the fit, or beside it (+x); the initial ("Reset View") camera is scene
+        camera 0, moved back and sideways to frame both when they stand side by side."""
         if self.target_root is None:
             return
-        rest = self.model.scene.net.rest
-        extent = float(np.ptp(np.asarray(rest)[..., 0])) if rest.size else 1.0
-        self.target_root.position = (
-            (1.4 * max(extent, 0.5), 0.0, 0.0) if side_by_side else (0, 0, 0)
-        )
+        rest = np.asarray(self.model.scene.net.rest)
+        shift = np.array([1.4 * max(float(np.ptp(rest[..., 0])), 0.5), 0.0, 0.0])
+        self.target_root.position = shift if side_by_side else np.zeros(3)
+        cams = self.model.cameras()
+        if cams:
+            eye, at = cams[0]["eye"], cams[0]["look_at"]
+            if side_by_side:
+                at = at + shift / 2
+                eye = at + 1.7 * (eye - cams[0]["look_at"])
+            ic = self.server.initial_camera
+            ic.position, ic.look_at = eye, at
 
 
 class Viewer:
@@ -169,12 +177,15 @@ class Viewer:
         self.frame = model.num_frames - 1 if not autoplay else 0
         self.latencies: list[float] = []  # s, slider message -> new frame sent, per re-simulation
         self._stop = threading.Event()
+        self._stopped = False
         self._pending: dict = {}
         self._pending_since: float | None = None
         self._cv = threading.Condition()
         self._render_request = threading.Event()
+        self._rendered: set[str] = set()  # shading modes compiled so far
         self.scene3d = _Scene3D(self.server, model)
         self._build_gui(autoplay, fps or min(60.0, 1.0 / max(model.dt, 1e-3)))
+        self.scene3d.layout(side_by_side=True)
         self.scene3d.show(self.frame)
         self._threads = [
             threading.Thread(target=self._resim_worker, daemon=True, name="diffcloth-resim"),
@@ -196,7 +207,7 @@ class Viewer:
             f"**diffcloth** `{m.name}`: net {net[1]} x {net[0]}, {m.num_frames} frames, "
             f"{len(m.scene.bodies)} rigid bodies"
         )
-        self.status = gui.add_markdown(f"compiled in {m.compile_s:.1f} s")
+        self.status = gui.add_markdown(f"first simulation, with the compile: {m.compile_s:.1f} s")
         with gui.add_folder("Playback"):
             self.play = gui.add_checkbox("play", initial_value=autoplay)
             self.frame_slider = gui.add_slider(
@@ -281,7 +292,7 @@ class Viewer:
                 else "Cloth: fitted parameters (no [truth] in the config: no target to show)."
             )
             self.layout = gui.add_dropdown(
-                "layout", ("overlay", "side by side"), initial_value="overlay"
+                "layout", ("side by side", "overlay"), initial_value="side by side"
             )
             self.layout.on_update(
                 lambda _: self.scene3d.layout(self.layout.value == "side by side")
@@ -313,6 +324,8 @@ class Viewer:
 
     # ---- playback -----------------------------------------------------------------------------
     def _set_frame(self, t: int) -> None:
+        if int(t) == self.frame:  # the slider echoing a frame the playback already showed
+            return
         self.frame = int(t)
         self.scene3d.show(self.frame)
         if self.shading.value != "off":
@@ -322,9 +335,8 @@ class Viewer:
         while not self._stop.is_set():
             if self.play.value:
                 nxt = (self.frame + 1) % self.model.num_frames
-                self.frame_slider.value = nxt  # on_update shows it
-                if self.frame != nxt:
-                    self._set_frame(nxt)
+                self._set_frame(nxt)
+                self.frame_slider.value = nxt
             self._stop.wait(1.0 / max(float(self.fps.value), 1.0))
 
     # ---- re-simulation ------------------------------------------------------------------------
@@ -416,20 +428,28 @@ class Viewer:
                 continue
             self.image.image = img
             ms = 1e3 * (time.perf_counter() - t0)
-            self.render_note.content = f"{mode}, camera {cam}, frame {self.frame}: {ms:.0f} ms"
+            first = "" if mode in self._rendered else " (first use: includes the compile)"
+            self._rendered.add(mode)
+            self.render_note.content = (
+                f"{mode}, camera {cam}, frame {self.frame}: {ms:.0f} ms{first}"
+            )
 
     # ---- lifetime -----------------------------------------------------------------------------
     def serve_forever(self) -> None:
-        """Block until Ctrl-C, then stop."""
+        """Block until Ctrl-C (or `stop()` from another thread), then stop."""
         try:
-            while True:
-                time.sleep(3600)
+            while not self._stop.wait(0.5):
+                pass
         except KeyboardInterrupt:
             pass
         finally:
             self.stop()
 
     def stop(self) -> None:
+        """Stop the worker threads and the server (idempotent)."""
+        if self._stopped:
+            return
+        self._stopped = True
         self._stop.set()
         with self._cv:
             self._cv.notify_all()
@@ -438,10 +458,11 @@ class Viewer:
         self.server.stop()
 
 
-def export_html(model: ViewModel, path, *, side_by_side: bool = False, speed: float = 1.0) -> Path:
+def export_html(model: ViewModel, path, *, side_by_side: bool = True, speed: float = 1.0) -> Path:
     """Write a self-contained HTML recording of the model's frames (viser's embedded client and
     the scene, zstd-compressed, base64 inside one file). It opens from the file system, offline,
-    and plays the sequence with viser's timeline (play, pause, scrub). Returns the path."""
+    and plays the sequence with viser's timeline (play, pause, scrub). A fit's target stands beside
+    the fit (side_by_side) or over it. Returns the path."""
     path = Path(path)
     server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:

@@ -15,11 +15,12 @@ def run(args) -> int:
     from diffcloth.view.app import Viewer, export_html
     from diffcloth.view.model import load_view
 
-    handler = logging.StreamHandler(sys.stdout)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
     logger = logging.getLogger("diffcloth.view")
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
+    if not logger.handlers:  # the re-simulation log lines go to stdout
+        handler = logging.StreamHandler(sys.stdout)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
     print(f"diffcloth view {args.path}: simulating and compiling ...", flush=True)
     t0 = time.perf_counter()
     try:
@@ -29,11 +30,15 @@ def run(args) -> int:
         return 2
     print(f"  ready in {time.perf_counter() - t0:.1f} s", flush=True)
     if args.export:
-        path = export_html(model, args.export, side_by_side=args.side_by_side)
+        path = export_html(model, args.export, side_by_side=not args.overlay)
         size = path.stat().st_size / 1e6
         print(f"wrote {path} ({size:.1f} MB): open it in a browser, no server or network needed")
         return 0
     viewer = Viewer(model, host=args.host, port=args.port, autoplay=not args.paused)
     print(f"viewer at {viewer.url}  (Ctrl-C to stop)", flush=True)
-    viewer.serve_forever()
+    try:
+        viewer.serve_forever()
+    except KeyboardInterrupt:  # a second Ctrl-C while shutting down
+        viewer.stop()
+    print("viewer stopped")
     return 0

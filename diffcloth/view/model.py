@@ -477,7 +477,7 @@ class ViewModel:
             wall = self._continue_from(frame, state, bodies, thrust)
             self._note(
                 f"re-simulation {self.resim_count}: thruster on body {body}, {accel:g} m/s^2 along "
-                f"{list(np.round(d, 3))} for {frames} frames after frame {frame} in "
+                f"{np.round(d, 3).tolist()} for {frames} frames after frame {frame} in "
                 f"{1e3 * wall:.0f} ms"
             )
             return wall
@@ -547,7 +547,7 @@ def load_view(path, *, level: int | None = None, size: int | None = None) -> Vie
         summary, fitted, loss = _read_fit(path)
         truth: dict[str, np.ndarray] = {}
         if "truth" in config.sections:
-            from diffcloth.experiment import parse_fit
+            from diffcloth.config.fit import parse_fit
 
             truth = dict(parse_fit(config.sections, path).truth)
         fit = FitData(path, fitted, truth, summary, loss)

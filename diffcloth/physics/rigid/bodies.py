@@ -147,11 +147,15 @@ def make_body(
     if shape == "sphere":
         if radius is None:
             raise ValueError("radius is required for a sphere (allowed range (0, inf))")
+        if half_extents is not None:
+            raise ValueError("a sphere takes radius, not half_extents (half_extents is for boxes)")
         r = _scalar("radius", radius, 0.0, inf, None, open_lo=True)
         he = np.full(3, float(r))
     else:
         if half_extents is None:
             raise ValueError("half_extents is required for a box (3 numbers in (0, inf))")
+        if radius is not None:
+            raise ValueError("a box takes half_extents, not radius (radius is for spheres)")
         he = _vec("half_extents", half_extents, 3, None)
         if np.any(he <= 0):
             raise ValueError(
