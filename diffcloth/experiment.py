@@ -19,6 +19,11 @@ from diffcloth.config.fit import FitSettings, check_devices, parse_fit
 
 __all__ = ["FitSettings", "check_devices", "parse_fit", "run_fit_config", "video_strip"]
 
+_METHOD_NAMES = {
+    "lm": "Levenberg-Marquardt (optimistix, forward-mode Jacobians, coarse-to-fine stages)",
+    "adam": "Adam (optax)",
+}
+
 
 def smoke_config(config: cfg.Config) -> cfg.Config:
     """A much smaller version of a config for smoke runs (CI): few frames, tiny images."""
@@ -160,6 +165,27 @@ def _status_line(status: str) -> str:
     }.get(status, status)
 
 
+def _method_section(result, settings) -> str:
+    """report.md: which method ran, its stages and evaluation count."""
+    text = f"{_METHOD_NAMES[result.method]}"
+    text += " (chosen by method = \"auto\")" if settings.method == "auto" else ""
+    text += f"; {result.evaluations} loss/Jacobian evaluations." if result.evaluations else "."
+    if result.stages:
+        text += "\n\n| stage | LM steps | final loss of the stage | status |\n|---|---|---|---|\n"
+        text += "\n".join(
+            f"| {st['name']} | {st['steps']} | {st['loss']:.4g} | {st['status']} |"
+            for st in result.stages
+        )
+        text += (
+            "\n\nStages are coarse to fine (pyramid levels from the coarsest, then a frame window "
+            "growing to all frames), each warm-started from the previous one; the losses of "
+            "different stages weight the pixels differently and do not compare."
+        )
+    if getattr(result, "ties", None):
+        text += f"\n\nTied parameters (not optimised): {result.ties.describe()}."
+    return text
+
+
 def run_fit_config(
     config_path,
     out_dir,
@@ -281,7 +307,24 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
                 f"[truth] {_fmt_params(settings.truth)}: the simulation of the true values is not "
                 f"usable ({where}); choose values the scene can simulate, or lower [sim] dt"
             )
-    optimizer = _optimizer(settings.learning_rate, settings.schedule, settings.steps)
+    from diffcloth.fit.lm import num_scalars
+    from diffcloth.fit.scene_fit import choose_method
+
+    free_init = {
+        n: settings.initial.get(n, pipeline.param_value(sc, n))
+        for n in settings.free
+        if n not in (settings.ties or {})
+    }
+    method = choose_method(settings.method, settings.loss, num_scalars(free_init))
+    optimizer = None
+    if method == "adam":
+        optimizer = _optimizer(settings.learning_rate, settings.schedule, settings.steps)
+    if progress:
+        print(
+            f"  method: {_METHOD_NAMES[method]}"
+            + (" (auto)" if settings.method == "auto" else ""),
+            flush=True,
+        )
     result = dcfit.fit(
         sc,
         targets,
@@ -290,10 +333,15 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
         optimizer,
         init=settings.initial,
         loss=settings.loss,
+        method=method,
+        ties=settings.ties,
+        stages=settings.stages,
         multistart=settings.multistart,
         devices=settings.devices,
         seed=settings.seed,
         patience=settings.patience,
+        lm_patience=settings.lm_patience,
+        lm_stage_steps=settings.lm_stage_steps,
         progress=progress,
         checkpoint_path=tmp / "checkpoint.npz",
         checkpoint_every=checkpoint_every,
@@ -339,7 +387,7 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
         )
         if settings.identifiability and result.status != "nonfinite":
             ident = dcfit.scene_identifiability(
-                sc, targets, result.params, noise_sigma=settings.noise_sigma
+                sc, targets, result.params, noise_sigma=settings.noise_sigma, ties=settings.ties
             )
     truth = {k: v for k, v in settings.truth.items() if k in settings.free} or None
     sections = {}
@@ -360,6 +408,7 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
         )
     if diagnosis is not None:
         sections["Non-finite stop"] = f"{result.message}. Stage check: {diagnosis}."
+    sections["Method"] = _method_section(result, settings)
     sections["Scene"] = (
         f"net {sc.net.rows}x{sc.net.cols}, {sc.num_frames} frames "
         f"({sc.sim.num_substeps} substeps, {sc.sim.integrator}), {len(sc.cameras)} camera(s) "
@@ -382,6 +431,12 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
         plots=not interrupted or len(result.history) > 1,
     )
     summary = report.fit_summary(result, truth, result.initial)
+    summary["method"] = result.method
+    summary["evaluations"] = result.evaluations
+    if result.stages is not None:
+        summary["stages"] = result.stages
+    if settings.ties:
+        summary["ties"] = {k: str(v) for k, v in settings.ties.items()}
     if diagnosis is not None:
         summary["diagnosis"] = diagnosis
     summary["total_s"] = time.perf_counter() - t0

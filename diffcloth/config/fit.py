@@ -8,6 +8,10 @@
         multistart = 1, devices = 1 (spread the multistart guesses over this many devices;
         multistart must be a multiple; `diffcloth fit --devices N` overrides),
         identifiability = true, noise_sigma = 0.01,
+        method = "auto" | "lm" | "adam" (auto: Levenberg-Marquardt for l2/pyramid and <= 16
+        scalar parameters), stages = "default" | "none" | [{min_level = 2, frames = 0.5}, ...]
+        (LM coarse-to-fine), lm_patience = 6,
+        ties = { shear = "stretch", bend = "1e-4 * stretch" }   (tied parameters, not fitted)
         targets = "folder"   (instead of [truth]: PNGs, one subfolder cam0, cam1, ... per camera
                               or the PNGs directly for a single camera)
         target_glob = "*.png", target_cameras = ["cam0", ...], target_frames = [first, stop],
@@ -51,6 +55,62 @@ class FitSettings:
     colorspace: str = "auto"
     initial: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     truth: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    method: str = "auto"
+    ties: Mapping[str, Any] | None = None
+    stages: Any = None
+    lm_patience: int = 6
+    lm_stage_steps: int = 20
+
+    def engine(self, **runtime):
+        """The loop settings (`diffcloth.fit.settings.FitSettings`) of this [fit] section: the
+        fields both share are copied, `runtime` (progress, callback, checkpoint_path, ...) added."""
+        from diffcloth.fit.settings import FitSettings as LoopSettings
+
+        shared = {f.name for f in dataclasses.fields(LoopSettings)} & {
+            f.name for f in dataclasses.fields(self)
+        }
+        shared -= {"devices"}  # 1 here means "one device" (None in the loop)
+        values = {k: getattr(self, k) for k in shared}
+        values["devices"] = self.devices if self.devices > 1 else None
+        values.update(runtime)
+        return LoopSettings(**values)
+
+
+def _parse_engine(t: Mapping[str, Any], free) -> dict:
+    """[fit] method, ties, stages, lm_patience (the LM engine's keys)."""
+    from diffcloth.fit.schedule import make_schedule
+    from diffcloth.fit.settings import METHODS
+    from diffcloth.fit.ties import parse_ties
+
+    w = "fit"
+    out = {"method": cfg.get_choice(t, "method", "auto", METHODS, where=w)}
+    ties = t.get("ties")
+    if ties is not None:
+        if not isinstance(ties, Mapping) or not ties:
+            raise cfg.ConfigError(
+                f"[fit] ties = {ties!r} must be a table, e.g. "
+                'ties = { shear = "stretch", bend = "1e-4 * stretch" }'
+            )
+        try:
+            parse_ties(ties, free)
+        except ValueError as err:
+            raise cfg.ConfigError(f"[fit] {err}") from None
+        out["ties"] = dict(ties)
+    stages = t.get("stages")
+    if stages is not None:
+        try:
+            make_schedule(stages)
+        except (ValueError, TypeError) as err:
+            raise cfg.ConfigError(
+                f"[fit] stages = {stages!r}: {err}; allowed: \"default\", \"none\" or a list of "
+                "{ min_level = 0..8, frames = (0, 1] } tables"
+            ) from None
+        out["stages"] = stages
+    out["lm_patience"] = cfg.get_number(t, "lm_patience", 6, where=w, lo=1, hi=1000, integer=True)
+    out["lm_stage_steps"] = cfg.get_number(
+        t, "lm_stage_steps", 20, where=w, lo=1, hi=1000, integer=True
+    )
+    return out
 
 
 def _param_value(name: str, value, where: str):
@@ -208,6 +268,7 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         colorspace=cfg.get_choice(t, "colorspace", "auto", ("auto", "srgb", "linear"), where=w),
         initial=initial,
         truth=truth,
+        **_parse_engine(t, free),
     )
 
 

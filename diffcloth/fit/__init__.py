@@ -23,6 +23,7 @@ from diffcloth.fit.footage import (
     scene_residuals,
 )
 from diffcloth.fit.identifiability import Identifiability, format_identifiability, identifiability
+from diffcloth.fit.interrupt import catch_interrupts
 from diffcloth.fit.loop import (
     FitResult,
     History,
@@ -34,15 +35,6 @@ from diffcloth.fit.loop import (
     pack_tree,
     save_checkpoint,
     unpack_tree,
-)
-from diffcloth.fit.interrupt import catch_interrupts
-from diffcloth.fit.scene_fit import (
-    LOSSES,
-    default_constraint,
-    fit,
-    make_targets,
-    scene_identifiability,
-    video_loss,
 )
 from diffcloth.fit.losses import (
     absolute_error,
@@ -64,8 +56,21 @@ from diffcloth.fit.masks import (
     target_distances,
 )
 from diffcloth.fit.robust import ROBUST_KINDS, robust_residuals, robust_rho
+from diffcloth.fit.scene_fit import (
+    LOSSES,
+    default_constraint,
+    fit,
+    make_targets,
+    scene_identifiability,
+    video_loss,
+)
+from diffcloth.fit.settings import FitSettings
+from diffcloth.fit.ties import Ties, parse_ties
 
 __all__ = [
+    "FitSettings",
+    "Ties",
+    "parse_ties",
     "FootageLoss",
     "FootageTargets",
     "ROBUST_KINDS",

@@ -32,7 +32,12 @@ from jax.flatten_util import ravel_pytree
 from diffcloth.fit.constraints import make_constraints, to_physical, to_raw
 from diffcloth.physics.forces import autodiff_forces
 
-__all__ = ["Identifiability", "format_identifiability", "identifiability"]
+__all__ = [
+    "Identifiability",
+    "format_identifiability",
+    "identifiability",
+    "identifiability_from_jacobian",
+]
 
 
 @dataclasses.dataclass
@@ -161,11 +166,73 @@ def identifiability(
     # the symplectic step is reverse-mode only)
     with autodiff_forces():
         jac = np.asarray(jax.jit(jax.jacfwd(fn))(flat), dtype=float)  # (m, n), one compile
+    dphys = None
+    if space == "raw":
+        dphys = np.diag(
+            np.asarray(
+                jax.jacfwd(
+                    lambda z: ravel_pytree(
+                        to_physical(unravel(z), make_constraints(list(phys), constraints))
+                    )[0]
+                )(flat)
+            )
+        )
+    return _analyse(
+        jac,
+        np.asarray(flat, float),
+        np.asarray(flat_phys, float),
+        names,
+        space,
+        noise_sigma,
+        corr_threshold,
+        eig_rtol,
+        weight_threshold,
+        dphys,
+    )
+
+
+def identifiability_from_jacobian(
+    jac,
+    params: Mapping[str, Any],
+    *,
+    noise_sigma: float = 1.0,
+    corr_threshold: float = 0.95,
+    eig_rtol: float = 1e-6,
+    weight_threshold: float = 0.3,
+) -> Identifiability:
+    """`identifiability` (physical space) from a given Jacobian (m, n) of the residuals w.r.t. the
+    physical parameters, columns in the order of `ravel_pytree(params)` (sorted names)."""
+    if not (np.isfinite(noise_sigma) and noise_sigma > 0):
+        raise ValueError(f"noise_sigma={noise_sigma!r} must be finite and > 0")
+    phys = {k: np.asarray(v, float) for k, v in params.items()}
+    flat = np.concatenate([np.ravel(phys[k]) for k in sorted(phys)])
+    jac = np.asarray(jac, float)
+    if jac.ndim != 2 or jac.shape[1] != flat.size:
+        raise ValueError(f"jac has shape {jac.shape}; expected (m, {flat.size})")
+    if not np.all(np.isfinite(jac)):
+        raise ValueError("the Jacobian is not finite")
+    return _analyse(
+        jac,
+        flat,
+        flat,
+        _flat_names(phys),
+        "physical",
+        noise_sigma,
+        corr_threshold,
+        eig_rtol,
+        weight_threshold,
+        None,
+    )
+
+
+def _analyse(
+    jac, flat, values, names, space, noise_sigma, corr_threshold, eig_rtol, weight_threshold, dphys
+) -> Identifiability:
+    """The Fisher analysis of a Jacobian (m, n) at `flat` (the variables) / `values` (physical)."""
     if not np.all(np.isfinite(jac)):
         raise ValueError("the Jacobian of residual_fn at params is not finite")
     fisher = jac.T @ jac / noise_sigma**2
     n = fisher.shape[0]
-    values = np.asarray(flat_phys, dtype=float)
 
     # Relative (scale-free) Fisher matrix for the eigen-analysis.
     scale = np.asarray(flat, dtype=float) if space == "physical" else np.ones(n)
@@ -194,14 +261,7 @@ def identifiability(
             values != 0, std / np.where(values != 0, np.abs(values), 1.0), np.inf
         )
     else:  # raw std of a log-space parameter is already relative; report it via the Jacobian map
-        dphys = np.asarray(
-            jax.jacfwd(
-                lambda z: ravel_pytree(
-                    to_physical(unravel(z), make_constraints(list(phys), constraints))
-                )[0]
-            )(flat)
-        )
-        std_phys = np.abs(np.diag(dphys)) * std
+        std_phys = np.abs(dphys) * std
         relative_std = np.where(
             values != 0, std_phys / np.where(values != 0, np.abs(values), 1.0), np.inf
         )

@@ -91,6 +91,7 @@ class FitResult:
     set, e.g. by Ctrl-C; a checkpoint to resume from was written when checkpoint_path was given).
     message: a one-line explanation.
     last_finite: physical parameters of the last evaluation with a finite loss and gradient.
+    method: "adam" or "lm" (`diffcloth.fit.lm`). evaluations: loss + derivative evaluations.
     """
 
     params: dict[str, np.ndarray]
@@ -105,6 +106,9 @@ class FitResult:
     best_step: int
     last_finite: dict[str, np.ndarray]
     checkpoint_path: str | None = None
+    method: str = "adam"
+    evaluations: int | None = None  # loss(+derivative) evaluations; None: len(history)
+    stages: list[dict] | None = None  # LM coarse-to-fine stages (name, steps, loss, status)
 
     @property
     def ok(self) -> bool:

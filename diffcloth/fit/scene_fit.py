@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffcloth.fit.constraints import Bounded, Identity, Positive
-from diffcloth.fit.identifiability import identifiability
 from diffcloth.fit.loop import fit_multistart, fit_params
 from diffcloth.fit.losses import image_loss, pyramid_loss, validate_targets
 
@@ -79,35 +78,94 @@ def make_targets(scene, truth: Mapping[str, Any], *, noise: float = 0.0, seed: i
     return video
 
 
-def _loss_fn(kind: str):
+def _loss_fn(kind: str, ties=None):
     from diffcloth import pipeline
+    from diffcloth.fit.ties import Ties
 
-    return _LOSS_FNS.setdefault(
-        kind,
-        lambda params, targets, scene: video_loss(
-            pipeline.simulate_and_render(scene, params), targets, kind
-        ),
-    )
+    ties = ties or Ties()
+
+    def loss(params, targets, scene):
+        return video_loss(pipeline.simulate_and_render(scene, ties.expand(params)), targets, kind)
+
+    return _LOSS_FNS.setdefault((kind, ties), loss)
 
 
-_LOSS_FNS: dict[str, Any] = {}
+def _residual_fn(num_levels: int, ties=None):
+    """residual(params, targets, scene, level_weights, frame_weights): weighted pyramid residuals
+    of the rendered video (`diffcloth.fit.schedule.video_residuals`); cached per (levels, ties)."""
+    from diffcloth import pipeline
+    from diffcloth.fit.schedule import video_residuals
+    from diffcloth.fit.ties import Ties
+
+    ties = ties or Ties()
+
+    def residual(params, targets, scene, level_w, frame_w):
+        video = pipeline.simulate_and_render(scene, ties.expand(params))
+        return video_residuals(video, targets, level_w, frame_w, num_levels)
+
+    return _RESIDUAL_FNS.setdefault((num_levels, ties), residual)
+
+
+_LOSS_FNS: dict[Any, Any] = {}
+_RESIDUAL_FNS: dict[Any, Any] = {}
+LM_LOSSES = ("l2", "pyramid")  # losses that are a sum of squares (what LM can fit)
+
+
+def choose_method(method: str, loss: str, num_scalars: int, optimizer=None) -> str:
+    """ "lm" or "adam" for method "auto": LM for a least-squares loss, <= 16 scalar parameters and
+    no custom optax optimizer; otherwise Adam. Explicit "lm" with a loss LM cannot fit raises."""
+    from diffcloth.fit.settings import LM_MAX_PARAMS, METHODS
+
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if method == "lm":
+        if loss not in LM_LOSSES:
+            raise ValueError(
+                f"method 'lm' fits least-squares losses {LM_LOSSES}; loss {loss!r} needs 'adam'"
+            )
+        return "lm"
+    if method == "adam":
+        return "adam"
+    if loss in LM_LOSSES and num_scalars <= LM_MAX_PARAMS and optimizer is None:
+        return "lm"
+    return "adam"
+
+
+def _lm_stages(scene, loss: str, schedule):
+    """(stage argument tuples, names, num_levels) of a schedule for this scene's video."""
+    from diffcloth.fit.schedule import make_schedule, num_pyramid_levels, stage_weights
+
+    sched = make_schedule(schedule)
+    levels = num_pyramid_levels(scene.image_shape, sched.num_levels)
+    frames = scene.video_shape[1]
+    dtype = np.dtype(scene.material.stretch.dtype)
+    args, names, priors = [], [], []
+    for st in list(sched.stages) + [None]:
+        priors.append(st is not None and st.frames < 1.0)  # a frame window hides parameters
+        lw, fw = stage_weights(loss, levels, frames, st, dtype)
+        args.append((jnp.asarray(lw), jnp.asarray(fw)))
+        if st is None:
+            names.append(f"final ({loss}, all {frames} frames)")
+        else:
+            nf = int(np.count_nonzero(fw))
+            names.append(f"levels>={st.min_level}, frames 1-{nf}")
+    return args, names, levels, priors
 
 
 def fit(
     scene,
     targets,
     free: Sequence[str],
-    steps: int = 100,
+    steps: int | None = None,
     optimizer=None,
     *,
     init: Mapping[str, Any] | None = None,
     constraints: Mapping[str, Any] | None = None,
     loss: str = "l2",
-    learning_rate: float | None = None,
-    multistart: int = 1,
-    spread: float = 0.5,
-    seed: int = 0,
-    devices: int | None = None,
+    method: str | None = None,
+    ties: Mapping[str, Any] | None = None,
+    stages=None,
+    settings=None,
     **fit_kwargs,
 ):
     """Fit the named scene parameters to target videos.
@@ -117,23 +175,52 @@ def fit(
       targets: (cameras, T, H, W, C) video, or (T, H, W, C) for a single camera; float in [0, 1]
         or uint8 (divided by 255). Checked against `scene.video_shape` before any compilation.
       free: names of the parameters to fit (see `diffcloth.pipeline.PARAMETERS`).
-      steps: maximum optimizer steps.  optimizer: an optax transformation (default Adam + clipping).
+      steps: maximum optimizer steps (default 100; LM: steps of the final stage).
+      optimizer: an optax transformation (Adam only; giving one makes method "auto" pick Adam).
       init: initial physical values (default: the scene's own values).
       constraints: name -> constraint (default `default_constraint(name)`).
       loss: "l2", "l1" or "pyramid" (multi-scale, wider basin of convergence).
-      multistart: number of initial guesses fitted at once with `vmap`; guesses beyond the first are
-        the initial values times exp(spread * N(0, 1)) for positive parameters; the best is kept.
-      devices: spread the multistart guesses over this many devices (`jax.sharding`); multistart
-        must be a multiple of it. None or 1: one device.
-      fit_kwargs: passed to `diffcloth.fit.fit_params` (tol, patience, progress, callback,
-        checkpoint_path, ...).
+      method: "auto" (default: Levenberg-Marquardt for l2/pyramid losses and <= 16 scalar
+        parameters, else Adam), "lm" or "adam". The result's `.method` says which ran.
+      ties: {name: "other" | "c * other"} tied parameters (`diffcloth.fit.ties`): not optimised,
+        set from their source (which must be free) at every evaluation; reported in the result.
+      stages: LM coarse-to-fine stages (`diffcloth.fit.schedule.make_schedule`: None = default,
+        "none", or a list of {"min_level", "frames"}).
+      settings: a `FitSettings`; the keyword arguments below override its fields.
+      multistart, spread, seed, devices (in fit_kwargs or settings): number of initial guesses
+        fitted at once with `vmap` (extra guesses are the initial values times
+        exp(spread * N(0, 1)) for positive parameters), the best kept; devices shards them.
+      fit_kwargs: any other `FitSettings` field (learning_rate, tol, patience, progress, callback,
+        checkpoint_path, lm_patience, ...), `hook` (LM per-step hook), `stop` (interrupt event,
+        `diffcloth.fit.interrupt`) and `resume` (a checkpoint to continue from).
     Returns:
       FitResult (or MultiStartResult when multistart > 1).
     Raises:
-      ValueError: unknown parameter names, a bad loss kind, or targets of the wrong shape.
+      ValueError: unknown parameter names, a bad loss kind, bad ties, or targets of the wrong shape.
     """
     from diffcloth import pipeline
+    from diffcloth.fit.lm import fit_lm, fit_lm_multistart, num_scalars
+    from diffcloth.fit.settings import resolve_settings
+    from diffcloth.fit.ties import parse_ties
 
+    hook = fit_kwargs.pop("hook", None)
+    stop = fit_kwargs.pop("stop", None)
+    resume = fit_kwargs.pop("resume", None)
+    overrides = dict(fit_kwargs)
+    if steps is not None:
+        overrides["steps"] = steps
+    elif settings is None:
+        overrides.setdefault("steps", 100)
+    if optimizer is not None:
+        overrides["optimizer"] = optimizer
+    if method is not None:
+        overrides["method"] = method
+    if ties is not None:
+        overrides["ties"] = ties
+    if stages is not None:
+        overrides["stages"] = stages
+    s = resolve_settings(settings, overrides)
+    devices, multistart = s.devices, s.multistart
     if devices is not None and (
         isinstance(devices, bool) or not isinstance(devices, int) or devices < 1
     ):
@@ -147,6 +234,11 @@ def fit(
     if not free:
         raise ValueError("free must name at least one parameter to fit")
     pipeline.check_param_names(free)
+    tie_set = parse_ties(s.ties, free)
+    tied = [n for n in free if n in tie_set.targets]
+    free = [n for n in free if n not in tie_set.targets]
+    if not free:
+        raise ValueError(f"every free parameter is tied ({tied}); leave at least one free")
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
     targets = np.asarray(targets)
@@ -159,41 +251,131 @@ def fit(
         for n in free
     }
     cons = {n: (constraints or {}).get(n, default_constraint(n)) for n in free}
-    loss_fn = _loss_fn(loss)
-    common = dict(
-        steps=steps,
-        optimizer=optimizer,
-        learning_rate=learning_rate,
-        loss_args=(targets, scene),
-        **fit_kwargs,
-    )
-    if multistart <= 1:
-        return fit_params(loss_fn, init, cons, **common)
-    rng = np.random.default_rng(seed)
+    chosen = choose_method(s.method, loss, num_scalars(init), s.optimizer)
     inits = [init]
-    for _ in range(multistart - 1):
-        guess = {}
-        for n, v in init.items():
-            if isinstance(cons[n], Positive):
-                guess[n] = v * np.exp(spread * rng.standard_normal(np.shape(v)))
-            else:
-                guess[n] = v + spread * 0.1 * rng.standard_normal(np.shape(v))
-        inits.append(guess)
-    return fit_multistart(
-        loss_fn, inits, cons, devices=devices if devices and devices > 1 else None, **common
-    )
+    if multistart > 1:
+        rng = np.random.default_rng(s.seed)
+        for _ in range(multistart - 1):
+            guess = {}
+            for n, v in init.items():
+                if isinstance(cons[n], Positive):
+                    guess[n] = v * np.exp(s.spread * rng.standard_normal(np.shape(v)))
+                else:
+                    guess[n] = v + s.spread * 0.1 * rng.standard_normal(np.shape(v))
+            inits.append(guess)
+    if chosen == "lm":
+        stage_args, stage_names, levels, priors = _lm_stages(scene, loss, s.stages)
+        res_fn = _residual_fn(levels, tie_set)
+        common = dict(
+            loss_args=(targets, scene),
+            stages=stage_args,
+            stage_names=stage_names,
+            stage_priors=priors,
+            settings=s,
+            hook=hook,
+            stop=stop,
+            resume=resume,
+        )
+        if multistart <= 1:
+            result = fit_lm(res_fn, init, cons, **common)
+        else:
+            result = fit_lm_multistart(res_fn, inits, cons, **common)
+    else:
+        loss_fn = _loss_fn(loss, tie_set)
+        kw = dict(
+            steps=s.steps,
+            optimizer=s.optimizer,
+            learning_rate=s.learning_rate,
+            clip_norm=s.clip_norm,
+            tol=s.tol,
+            patience=s.patience,
+            loss_tol=s.loss_tol,
+            progress=s.progress,
+            callback=s.callback,
+            checkpoint_path=s.checkpoint_path,
+            checkpoint_every=s.checkpoint_every,
+            loss_args=(targets, scene),
+            resume=resume,
+            stop=stop,
+        )
+        if multistart <= 1:
+            result = fit_params(loss_fn, init, cons, **kw)
+        else:
+            result = fit_multistart(
+                loss_fn, inits, cons, devices=devices if devices and devices > 1 else None, **kw
+            )
+    if tie_set:
+        for r in getattr(result, "results", [result]):
+            _add_tied(r, tie_set)
+    return result
+
+
+def _add_tied(result, ties) -> None:
+    """Put the tied parameters' values into a FitResult (params, initial, history, last_finite)."""
+    result.ties = ties
+    for attr in ("params", "initial", "last_finite"):
+        d = getattr(result, attr)
+        setattr(result, attr, {k: np.asarray(v) for k, v in ties.expand(d).items()})
+    result.history.params = ties.expand(result.history.params)
+    result.history.grad_norm = {
+        **result.history.grad_norm,
+        **{t: np.full_like(result.history.loss, np.nan) for t in ties.targets},
+    }
 
 
 def scene_identifiability(
-    scene, targets, params: Mapping[str, Any], *, noise_sigma: float = 0.01, **kwargs
+    scene,
+    targets,
+    params: Mapping[str, Any],
+    *,
+    noise_sigma: float = 0.01,
+    ties=None,
+    constraints: Mapping[str, Any] | None = None,
+    **kwargs,
 ):
     """Gauss-Newton identifiability of `params` (name -> fitted value) from the image residuals
-    (rendered - target), with pixel noise `noise_sigma`. See `diffcloth.fit.identifiability`."""
-    from diffcloth import pipeline
+    (rendered - target, every pixel of every frame and camera), with pixel noise `noise_sigma`.
 
-    targets = jnp.asarray(targets)
+    The Jacobian comes from the LM engine's compiled forward-mode function (after an LM fit of
+    the same scene this compiles nothing new). Tied parameters (in `ties`) are left out: the
+    analysis is over the free ones. See `diffcloth.fit.identifiability`.
+    """
+    from diffcloth.fit.identifiability import identifiability_from_jacobian
+    from diffcloth.fit.lm import lm_jacobian
+    from diffcloth.fit.schedule import num_pyramid_levels
+    from diffcloth.fit.ties import parse_ties
 
-    def residual(p):
-        return (pipeline.simulate_and_render(scene, p) - targets).ravel()
+    tie_set = parse_ties(ties)
+    free = {k: np.asarray(v) for k, v in params.items() if k not in tie_set.targets}
+    cons = {n: (constraints or {}).get(n, default_constraint(n)) for n in free}
+    targets = np.asarray(targets)
+    if targets.ndim == 4 and len(scene.cameras) == 1:
+        targets = targets[None]
+    targets = jnp.asarray(targets, scene.material.stretch.dtype)
+    video_shape = targets.shape
+    dtype = np.dtype(scene.material.stretch.dtype)
+    # Residual layout of the engine (4 pyramid levels when the image allows): reuse its compiled
+    # Jacobian with weights selecting the full-resolution level over every frame.
+    levels = num_pyramid_levels(scene.image_shape, 4)
+    lw = np.zeros(levels, dtype)
+    lw[0] = 1.0
+    fw = np.full(video_shape[1], 1.0 / video_shape[1], dtype)
+    _, jac_raw = lm_jacobian(
+        _residual_fn(levels, tie_set),
+        free,
+        cons,
+        loss_args=(targets, scene),
+        stage_args=(jnp.asarray(lw), jnp.asarray(fw)),
+    )
+    # r = d / sqrt(cams * pixels * T): undo the scale, then chain rule raw -> physical.
+    count = video_shape[0] * video_shape[1] * int(np.prod(video_shape[2:]))
+    jac_raw = jac_raw[:count] * np.sqrt(count)
+    from diffcloth.fit.constraints import to_raw
 
-    return identifiability(residual, dict(params), noise_sigma=noise_sigma, **kwargs)
+    raw = to_raw(free, cons)
+    dphys = []
+    for k in sorted(free):
+        g = jax.vmap(jax.grad(lambda z, c=cons[k]: c.forward(z)))(jnp.ravel(raw[k]))
+        dphys.append(np.asarray(g, float))
+    jac_phys = jac_raw / np.concatenate(dphys)[None, :]
+    return identifiability_from_jacobian(jac_phys, free, noise_sigma=noise_sigma, **kwargs)
