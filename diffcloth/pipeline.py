@@ -143,10 +143,11 @@ def simulate(scene, params=None) -> physics.ClothState:
     )
 
 
-def render_frame(scene, x: jax.Array, spheres=None) -> jax.Array:
+def render_frame(scene, x: jax.Array, spheres=None, boxes=None) -> jax.Array:
     """One control net (rows, cols, 3) -> images (num_cameras, H, W, 3) of the scene.
 
-    spheres: this frame's spheres (default: the scene's static spheres)."""
+    spheres: this frame's spheres (default: the scene's static spheres); boxes: this frame's
+    `render.boxes.BoxPoses` (box bodies, drawn with the cloth) or None."""
     spheres = scene.spheres if spheres is None else spheres
     surf = surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
     if spheres is not None:
@@ -161,6 +162,7 @@ def render_frame(scene, x: jax.Array, spheres=None) -> jax.Array:
             spheres=spheres,
             textures=scene.textures,
             background=scene.background,
+            boxes=boxes,
         )[..., :3]
         for camera in scene.cameras
     ]
@@ -171,7 +173,7 @@ def frame_spheres(scene, body_traj: tuple):
     """Per-frame spheres to draw: the static ones plus the sphere bodies at each frame.
 
     Returns None (no spheres) or a Sphere with center (T, n, 3) and radius (n,). Box bodies are
-    simulated and act on the cloth but are not drawn.
+    drawn as triangles (see `frame_boxes`).
     """
     balls = [b for b in body_traj if b.shape == "sphere"]
     if not balls:
@@ -190,21 +192,28 @@ def frame_spheres(scene, body_traj: tuple):
     )
 
 
-def render_frames(scene, xs: jax.Array, spheres=None) -> jax.Array:
+def frame_boxes(body_traj: tuple):
+    """Per-frame poses of the box bodies (`render.boxes.BoxPoses` with leaves (T, b, ...)), or
+    None without boxes."""
+    return render.boxes.box_poses(body_traj)
+
+
+def render_frames(scene, xs: jax.Array, spheres=None, boxes=None) -> jax.Array:
     """Control nets (T, rows, cols, 3) -> video (num_cameras, T, H, W, 3).
 
     spheres: optional per-frame spheres (center (T, n, 3), radius (n,)), e.g. `frame_spheres`.
+    boxes: optional per-frame box poses (leaves (T, b, ...)), e.g. `frame_boxes`.
     Frames are rendered one after another (`lax.map`) with the frame body checkpointed, so the
     memory of a gradient through a long video is that of a few frames plus the trajectory.
     """
-    if spheres is None:
-        frames = jax.lax.map(jax.checkpoint(lambda x: render_frame(scene, x)), xs)
-    else:
-        radius = spheres.radius
-        frames = jax.lax.map(
-            jax.checkpoint(lambda a: render_frame(scene, a[0], Sphere(a[1], radius))),
-            (xs, spheres.center),
-        )
+    radius = None if spheres is None else spheres.radius
+    centers = None if spheres is None else spheres.center
+
+    def one(a):
+        x, c, b = a
+        return render_frame(scene, x, None if c is None else Sphere(c, radius), b)
+
+    frames = jax.lax.map(jax.checkpoint(one), (xs, centers, boxes))
     return jnp.moveaxis(frames, 0, 1)
 
 
@@ -224,7 +233,10 @@ def simulate_and_render(scene, params=None) -> jax.Array:
     spheres = frame_spheres(scene, bodies)
     if spheres is not None:
         spheres = Sphere(spheres.center[k - 1 :: k], spheres.radius)
-    return render_frames(scene, traj.x[k - 1 :: k], spheres)
+    boxes = frame_boxes(bodies)
+    if boxes is not None:
+        boxes = jax.tree.map(lambda a: a[k - 1 :: k], boxes)
+    return render_frames(scene, traj.x[k - 1 :: k], spheres, boxes)
 
 
 def diagnose(scene, params=None) -> str | None:
@@ -269,7 +281,10 @@ def diagnose(scene, params=None) -> str | None:
     spheres = frame_spheres(scene, bodies)
     if spheres is not None:
         spheres = Sphere(spheres.center[k - 1 :: k], spheres.radius)
-    video = np.asarray(jax.jit(render_frames)(scene, xs, spheres))
+    boxes = frame_boxes(bodies)
+    if boxes is not None:
+        boxes = jax.tree.map(lambda a: a[k - 1 :: k], boxes)
+    video = np.asarray(jax.jit(render_frames)(scene, xs, spheres, boxes))
     good = np.isfinite(video).reshape(video.shape[0], video.shape[1], -1).all(axis=2)
     if not good.all():
         cam, frame = np.unravel_index(int(np.argmin(good)), good.shape)

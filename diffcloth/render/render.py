@@ -7,12 +7,14 @@ Surface --rasterize_gbuffer--> per-pixel attributes --shade--> premultiplied RGB
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from diffcloth._math import materialize, safe_norm, safe_normalize
+from diffcloth.render.boxes import BoxPoses, box_mesh, box_neighbors_np
 from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
@@ -109,6 +111,40 @@ def _sphere_layer(camera: Camera, spheres: Sphere, lights: Lights, appearance: A
     return rgba, depth
 
 
+class _Combined(NamedTuple):
+    positions: jax.Array
+    normals: jax.Array
+    tangents: jax.Array
+    bitangents: jax.Array
+    uv: jax.Array
+    faces: jax.Array
+
+
+def _with_boxes(surface, boxes: BoxPoses):
+    """The cloth surface and the boxes' triangles as one mesh (box faces after the cloth's), and
+    its edge-neighbour table (boxes: `boxes.box_neighbors_np`)."""
+    from diffcloth.render.mesh import mesh_surface
+
+    verts, nrm, faces = box_mesh(boxes)
+    box = mesh_surface(verts, faces, normals=nrm)
+    n, m = surface.positions.shape[0], surface.faces.shape[0]
+    cloth_nb = _grid_neighbors(surface)
+    if cloth_nb is None:
+        cloth_nb = edge_neighbors(surface.faces)
+    box_nb = box_neighbors_np(boxes.position.shape[0])
+    nb = jnp.concatenate([cloth_nb, jnp.asarray(np.where(box_nb >= 0, box_nb + m, -1))])
+    cat = lambda a, b: jnp.concatenate([a, b.astype(a.dtype)])
+    combined = _Combined(
+        positions=cat(surface.positions, box.positions),
+        normals=cat(surface.normals, box.normals),
+        tangents=cat(surface.tangents, box.tangents),
+        bitangents=cat(surface.bitangents, box.bitangents),
+        uv=cat(surface.uv, box.uv),
+        faces=jnp.concatenate([surface.faces.astype(jnp.int32), box.faces + n]),
+    )
+    return combined, nb.astype(jnp.int32)
+
+
 def surface_gbuffer(
     surface,
     camera: Camera,
@@ -119,6 +155,7 @@ def surface_gbuffer(
     two_sided: bool = True,
     cull_backfaces: bool = False,
     max_tiles: int | None = None,
+    boxes: BoxPoses | None = None,
 ):
     """Rasterize a Surface into the shader's per-pixel inputs.
 
@@ -126,8 +163,12 @@ def surface_gbuffer(
       (ShadingBuffer, raster GBuffer (ids, depth, crossings for `antialias`), eye vectors (H, W, 3)
       toward the viewer). face_normal is filled for shading="flat", color (per-vertex lighting
       from `light_vertices`) for shading="gouraud". With two_sided, back-facing pixels get flipped
-      normals, bitangents, face normals and the back side's vertex lighting.
+      normals, bitangents, face normals and the back side's vertex lighting. With `boxes`, their
+      triangles are rasterized with the surface (ids >= the surface's face count).
     """
+    neighbors = _grid_neighbors(surface)
+    if boxes is not None:
+        surface, neighbors = _with_boxes(surface, boxes)
     pos, nrm, faces = surface.positions, surface.normals, surface.faces
     eye_rays = -pixel_rays(camera)[1]  # toward the viewer, per pixel (right for every projection)
     attrs = {
@@ -152,7 +193,7 @@ def surface_gbuffer(
         faces,
         camera,
         attrs,
-        neighbors=_grid_neighbors(surface),
+        neighbors=neighbors,
         cull_backfaces=cull_backfaces,
         max_tiles=max_tiles,
     )
@@ -198,6 +239,7 @@ def render(
     background=(0.0, 0.0, 0.0),
     refraction: str = "shortened",
     draw_spheres: bool = True,
+    boxes: BoxPoses | None = None,
     antialiased: bool = True,
     cull_backfaces: bool = False,
     two_sided: bool = True,
@@ -217,6 +259,9 @@ def render(
       background: (3,) colour under uncovered pixels, or None for a premultiplied transparent
         result.
       refraction: "shortened" (seed) or "snell" for mode "reflect_refract".
+      boxes: optional `boxes.BoxPoses` of one frame: box bodies rasterized with the cloth
+        (mutual occlusion, antialiased edges, gradients w.r.t. pose) and shaded like the spheres:
+        sphere_color * (ambient + diffuse) + specular, flat per face.
       antialiased: apply the rasterizer's silhouette antialiasing (gives edge gradients).
       two_sided: light the back side of the cloth with the flipped normal (cloth is thin).
       max_tiles: rasterizer window budget (see `raster.rasterize`).
@@ -235,6 +280,7 @@ def render(
         two_sided=two_sided,
         cull_backfaces=cull_backfaces,
         max_tiles=max_tiles,
+        boxes=boxes,
     )
     img = shade(
         gb,
@@ -246,6 +292,16 @@ def render(
         spheres=spheres,
         refraction=refraction,
     )
+    if boxes is not None:
+        # box pixels: the spheres' material (Blinn-Phong with sphere_color), flat face normals
+        on_box = (buf.surface_id >= surface.faces.shape[0])[..., None]
+        diffuse, specular = blinn_phong(gb.normal, eye_rays, gb.position, lights, appearance)
+        amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
+        albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
+        spec = jnp.reshape(appearance.specular, (1, 1, 3))
+        box_rgb = (albedo * (amb + diffuse) + spec * specular) * gb.mask[..., None]
+        box_rgba = jnp.concatenate([box_rgb, gb.mask[..., None]], axis=-1).astype(img.dtype)
+        img = jnp.where(on_box, box_rgba, img)
     if antialiased:
         # computed once: fused into antialias's shifted neighbour reads, the shading (texture
         # gathers, bump maps) would be recomputed for each neighbour and channel (with the
