@@ -14,25 +14,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import emit, meta, timed
 
 from diffcloth import physics
 from diffcloth.physics.forces import make_gather_forces
 
 
 def _median_time(fn, *args, repeats):
-    jax.block_until_ready(fn(*args))  # compile + warm-up
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return timed(fn, *args, repeats=repeats).median
 
 
 def _peak_mb(jitted, *args) -> float:
@@ -120,13 +113,7 @@ def main():
     args = parser.parse_args()
     sizes = [(10, 13), (32, 32)] if args.quick else [(10, 13), (32, 32), (64, 64), (128, 128)]
     repeats = 3 if args.quick else 7
-    meta = dict(
-        machine=platform.processor() or platform.machine(),
-        jax=jax.__version__,
-        backend=jax.default_backend(),
-        dtype=str(jnp.zeros(()).dtype),
-    )
-    print(json.dumps(dict(bench="meta", **meta)), flush=True)
+    emit(meta("physics"))
     for rows, cols in sizes:
         for integrator in ("symplectic", "implicit"):
             print(json.dumps(bench_case(rows, cols, integrator, repeats)), flush=True)

@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import emit, meta, timed
 
 from diffcloth.render.camera import make_camera
 from diffcloth.render.raster import (
@@ -43,16 +43,12 @@ def seed_cloth(rows: int = 91, cols: int = 130):
 
 
 def _times_ms(fn, *args, repeats: int):
-    jax.block_until_ready(fn(*args))  # compile
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times)), 1e3 * float(np.min(times))
+    t = timed(fn, *args, repeats=repeats)
+    return 1e3 * t.median, 1e3 * t.min
 
 
 def main(sizes=(256, 512), repeats: int = 7):
+    emit(meta("render"))
     pos, faces, colors = seed_cloth()
     pos, faces, colors = jnp.asarray(pos), jnp.asarray(faces), jnp.asarray(colors)
     nbr = edge_neighbors(np.asarray(faces))

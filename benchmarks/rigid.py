@@ -3,13 +3,11 @@
 python benchmarks/rigid.py [--quick]
 """
 
-import json
-import statistics
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
+from _timing import emit, meta, timed
 
 from diffcloth import physics
 from diffcloth.physics import coupled, rigid
@@ -17,13 +15,7 @@ from diffcloth.shapes import make_plane
 
 
 def _time(fn, *args, repeats=5):
-    jax.block_until_ready(fn(*args))  # compile
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
+    return timed(fn, *args, repeats=repeats).median
 
 
 def _bodies(n):
@@ -35,7 +27,12 @@ def _bodies(n):
     return tuple(out)
 
 
+def _emit(row):
+    emit({"bench": "rigid", **row})
+
+
 def main(quick=False):
+    emit(meta("rigid"))
     frames = 30 if quick else 120
     ground = make_plane((0.0, 1.0, 0.0), 0.0)
     sim = rigid.make_settings(dt=1 / 60, num_substeps=8)
@@ -44,7 +41,7 @@ def main(quick=False):
         fwd = jax.jit(lambda b: rigid.rigid_rollout(sim, b, num_frames=frames, planes=ground))
         sec = _time(fwd, bodies)
         row = {"case": "rigid_rollout", "bodies": n, "frames": frames, "substeps": 8}
-        print(json.dumps({**row, "seconds": sec, "ms_per_frame": 1e3 * sec / frames}))
+        _emit({**row, "seconds": sec, "ms_per_frame": 1e3 * sec / frames})
 
         def loss(m, bodies=bodies):
             b0 = bodies[0].__class__(**{**bodies[0].__dict__, "mass": m})
@@ -52,8 +49,8 @@ def main(quick=False):
             return jnp.sum(traj[0].position[-1])
 
         sec = _time(jax.jit(jax.grad(loss)), jnp.asarray(1.0))
-        print(json.dumps({"case": "rigid_rollout_grad_mass", "bodies": n, "frames": frames,
-                          "seconds": sec}))  # fmt: skip
+        _emit({"case": "rigid_rollout_grad_mass", "bodies": n, "frames": frames,
+                          "seconds": sec})  # fmt: skip
 
     rows = 10
     net = physics.grid_net(rows, rows, (1.0, 1.0), plane="xy", pinned="top_row")
@@ -66,13 +63,13 @@ def main(quick=False):
         fn = jax.jit(lambda b, tw=two_way: coupled.coupled_rollout(
             net, csim, mat, state, b, num_frames=frames, two_way=tw))  # fmt: skip
         sec = _time(fn, (ball,))
-        print(json.dumps({"case": "coupled_rollout", "net": f"{rows}x{rows}", "two_way": two_way,
+        _emit({"case": "coupled_rollout", "net": f"{rows}x{rows}", "two_way": two_way,
                           "frames": frames, "substeps": 16, "seconds": sec,
-                          "ms_per_frame": 1e3 * sec / frames}))  # fmt: skip
+                          "ms_per_frame": 1e3 * sec / frames})  # fmt: skip
     plain = jax.jit(lambda s: physics.rollout(net, csim, mat, s, num_frames=frames))
     sec = _time(plain, state)
     row = {"case": "cloth_rollout_reference", "net": f"{rows}x{rows}", "frames": frames}
-    print(json.dumps({**row, "seconds": sec, "ms_per_frame": 1e3 * sec / frames}))
+    _emit({**row, "seconds": sec, "ms_per_frame": 1e3 * sec / frames})
 
 
 if __name__ == "__main__":

@@ -7,6 +7,11 @@ For each mode, one JSON line with the median wall time (ms) of
   render_grad value and gradient of the full render w.r.t. lights and appearance.
 Timings after one warm-up (compile) call, block_until_ready, median of --repeats runs. float32.
 
+Shadow cases (--shadow-modes, default phong and minnaert; "none" skips them): the full render of
+the same scene plus a ground plane, with both lights casting shadows ("shadows": true) and
+without ("shadows": false), forward and value-and-gradient w.r.t. lights and appearance, plus
+the shadow-map build alone ("mode": "shadow_maps") at --shadow-map-size texels.
+
     python benchmarks/shading.py [--size 256] [--repeats 5] [--modes phong,second_pass]
 """
 
@@ -14,12 +19,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import emit, meta, timed
 
 from diffcloth.render import lights as Lm
 from diffcloth.render import textures as T
@@ -37,23 +41,20 @@ def seed_surface():
     return tessellate(jnp.asarray(np.stack([x, y, z], -1), jnp.float32), 13)
 
 
-def timed(fn, *args, repeats):
-    jax.block_until_ready(fn(*args))  # compile
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return round(1e3 * statistics.median(times), 2)
+def _timed_ms(fn, *args, repeats):
+    return round(timed(fn, *args, repeats=repeats).median * 1e3, 2)
 
 
 def main():
+    emit(meta("shading"))
     parser = argparse.ArgumentParser()
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--modes", default=",".join(MODES))
     parser.add_argument("--no-render", action="store_true", help="time shading only")
     parser.add_argument("--no-grad", action="store_true")
+    parser.add_argument("--shadow-modes", default="phong,minnaert")
+    parser.add_argument("--shadow-map-size", type=int, default=256)
     args = parser.parse_args()
     surf = seed_surface()
     size = args.size
@@ -66,7 +67,7 @@ def main():
     spheres = make_sphere([(0.0, -0.3, 0.0), (0.55, 0.0, 0.35)], [0.3, 0.18], dtype=jnp.float32)
     weights = jnp.asarray(np.random.default_rng(0).uniform(size=(size, size, 4)), jnp.float32)
     device = jax.devices()[0].device_kind
-    for mode in args.modes.split(","):
+    for mode in [m for m in args.modes.split(",") if m != "none"]:
         gb, _, eye = jax.jit(surface_gbuffer, static_argnames=("shading",))(
             surf, cam, lights, app, shading=mode
         )
@@ -89,17 +90,81 @@ def main():
             "size": size,
             "vertices": int(surf.positions.shape[0]),
         }
-        row["shade_fwd_ms"] = timed(jax.jit(shade_fn), gb, eye, lights, app, repeats=args.repeats)
+        row["shade_fwd_ms"] = _timed_ms(
+            jax.jit(shade_fn), gb, eye, lights, app, repeats=args.repeats
+        )
         if not args.no_grad:
             g = jax.jit(jax.value_and_grad(shade_loss))
-            row["shade_grad_ms"] = timed(g, (lights, app), gb, eye, repeats=args.repeats)
+            row["shade_grad_ms"] = _timed_ms(g, (lights, app), gb, eye, repeats=args.repeats)
         if not args.no_render:
+            row["render_fwd_ms"] = _timed_ms(jax.jit(render_fn), lights, app, repeats=args.repeats)
+            if not args.no_grad:
+                g = jax.jit(jax.value_and_grad(render_loss))
+                row["render_grad_ms"] = _timed_ms(g, (lights, app), repeats=args.repeats)
+        row["device"] = device
+        print(json.dumps(row), flush=True)
+    shadow_cases(args, surf, cam, app, tex, spheres, weights, device)
+
+
+def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
+    """Render cost with and without shadows (module docstring)."""
+    from diffcloth.render.render import frame_shadow_maps
+    from diffcloth.shapes import make_plane
+
+    modes = [m for m in args.shadow_modes.split(",") if m and m != "none"]
+    if not modes:
+        return
+    ground = make_plane((0.0, 1.0, 0.0), -0.3, dtype=jnp.float32)
+    size, map_size = args.size, args.shadow_map_size
+
+    def lights_with(shadows):
+        return Lm.make_lights(
+            directional=[((0.3, 1.0, 0.6), (1.0, 1.0, 1.0), 1.0)],
+            point=[((-1.0, 1.2, 1.0), (0.4, 0.5, 0.7), 0.8)],
+            shadows=shadows,
+            dtype=jnp.float32,
+        )
+
+    lights = lights_with(True)
+    build = jax.jit(lambda lt: frame_shadow_maps(surf, lt, spheres=spheres, size=map_size))
+    row = {"bench": "shading", "mode": "shadow_maps", "size": size, "shadow_map_size": map_size}
+    row["fwd_ms"] = timed(build, lights, repeats=args.repeats)
+    row["device"] = device
+    print(json.dumps(row), flush=True)
+    for mode in modes:
+        for shadows in (False, True):
+            lights = lights_with(shadows)
+
+            def render_fn(lights, app, mode=mode):
+                return render(
+                    surf,
+                    cam,
+                    lights,
+                    mode,
+                    app,
+                    spheres=spheres,
+                    textures=tex,
+                    planes=ground,
+                    shadow_map_size=map_size,
+                )
+
+            def render_loss(params, mode=mode):
+                return jnp.sum(weights * render_fn(*params, mode=mode))
+
+            row = {
+                "bench": "shading",
+                "mode": mode,
+                "size": size,
+                "planes": 1,
+                "shadows": shadows,
+                "shadow_map_size": map_size,
+            }
             row["render_fwd_ms"] = timed(jax.jit(render_fn), lights, app, repeats=args.repeats)
             if not args.no_grad:
                 g = jax.jit(jax.value_and_grad(render_loss))
                 row["render_grad_ms"] = timed(g, (lights, app), repeats=args.repeats)
-        row["device"] = device
-        print(json.dumps(row), flush=True)
+            row["device"] = device
+            print(json.dumps(row), flush=True)
 
 
 if __name__ == "__main__":

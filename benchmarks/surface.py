@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import emit, meta, timed
 
 from diffcloth.shapes import Sphere
 from diffcloth.surface import collide_surface, tessellate
@@ -28,17 +27,13 @@ def seed_net(dtype):
     return jnp.asarray(np.stack([x, y, z], -1), dtype)  # (10 rows, 13 cols, 3)
 
 
-def timed(fn, *args, repeats):
-    jax.block_until_ready(fn(*args))  # compile
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), min(times)
+def _timed(fn, *args, repeats):
+    t = timed(fn, *args, repeats=repeats)
+    return t.median, t.min
 
 
 def main():
+    emit(meta("surface"))
     ap = argparse.ArgumentParser()
     ap.add_argument("--levels", type=int, nargs="+", default=[4, 8, 13, 26])
     ap.add_argument("--repeats", type=int, default=50)
@@ -70,7 +65,7 @@ def main():
             ("forward+collide", jax.jit(collided)),
         ]
         for name, fn in cases:
-            med, best = timed(fn, net, repeats=args.repeats)
+            med, best = _timed(fn, net, repeats=args.repeats)
             print(
                 json.dumps(
                     {

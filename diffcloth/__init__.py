@@ -8,10 +8,16 @@
     result = dc.fit.fit(scene, video, free=["bend"], steps=50)   # FitResult
 """
 
-from diffcloth import fit, physics, render, surface
+from diffcloth import fit, io, physics, render, surface
 from diffcloth.physics import ClothState, Material, Net
 from diffcloth.physics.rigid import RigidBody
-from diffcloth.pipeline import PARAMETERS, apply_params, simulate, simulate_and_render
+from diffcloth.pipeline import (
+    PARAMETERS,
+    apply_params,
+    simulate,
+    simulate_and_render,
+    simulate_and_render_checked,
+)
 from diffcloth.render import Camera, Light
 from diffcloth.scene import Scene, build_scene, load_scene
 from diffcloth.shapes import Plane, Sphere
@@ -33,10 +39,12 @@ __all__ = [
     "apply_params",
     "build_scene",
     "fit",
+    "io",
     "load_scene",
     "physics",
     "render",
     "simulate",
     "simulate_and_render",
+    "simulate_and_render_checked",
     "surface",
 ]

@@ -1,176 +1,121 @@
 """Run a fitting experiment from a config: targets -> fit -> result.json, plots, video, report.
 
-Config sections read here (the scene sections are in docs/config.md and diffcloth/scene.py):
-
-    [fit]   free = ["stretch", "bend"]   parameters to fit (diffcloth.pipeline.PARAMETERS)
-            steps = 60, learning_rate = 0.05, loss = "l2" | "l1" | "pyramid", patience = 30,
-            schedule = "cosine" (Adam's rate decays to 10% over the steps, damping the
-            oscillation around the optimum) | "constant",
-            noise = 0.0 (std of Gaussian noise added to synthetic targets), seed = 0,
-            multistart = 1, devices = 1 (spread the multistart guesses over this many devices;
-            multistart must be a multiple; `diffcloth fit --devices N` overrides),
-            identifiability = true, noise_sigma = 0.01,
-            targets = "folder"   (instead of [truth]: PNGs, one subfolder cam0, cam1, ... per camera
-                                  or the PNGs directly for a single camera)
-    [fit.initial]  name = value   starting values (default: the scene's own)
-    [truth]        name = value   true values, used to render synthetic targets
+The [fit], [fit.initial] and [truth] sections are parsed by `diffcloth.config.fit` (schema in
+docs/config.md); `FitSettings`, `parse_fit` and `check_devices` are re-exported here.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from diffcloth import config as cfg
+from diffcloth.config.fit import FitSettings, check_devices, parse_fit
 
-__all__ = ["FitSettings", "parse_fit", "run_fit_config", "video_strip"]
-
-
-@dataclasses.dataclass(frozen=True)
-class FitSettings:
-    free: tuple[str, ...]
-    steps: int = 60
-    learning_rate: float = 0.05
-    loss: str = "l2"
-    patience: int = 30
-    schedule: str = "cosine"
-    noise: float = 0.0
-    seed: int = 0
-    multistart: int = 1
-    devices: int = 1
-    identifiability: bool = True
-    noise_sigma: float = 0.01
-    targets: str | None = None
-    initial: Mapping[str, Any] = dataclasses.field(default_factory=dict)
-    truth: Mapping[str, Any] = dataclasses.field(default_factory=dict)
-
-
-_BODY_RANGES = {  # name -> (lo, hi, allowed range as text); mass excludes 0
-    "body_mass": (0.0, np.inf, "(0, inf) kg"),
-    "body_restitution": (0.0, 1.0, "[0, 1]"),
-    "body_friction": (0.0, np.inf, "[0, inf)"),
-}
-
-
-def _param_value(name: str, value, where: str):
-    if isinstance(value, bool) or not isinstance(value, int | float | list):
-        raise cfg.ConfigError(f"[{where}] {name} = {value!r} must be a number or a list of numbers")
-    arr = np.asarray(value, dtype=np.float64)
-    if not np.all(np.isfinite(arr)):
-        raise cfg.ConfigError(f"[{where}] {name} = {value!r} must be finite")
-    return arr
-
-
-def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitSettings:
-    """Validate [fit], [fit.initial] and [truth] (ConfigError names the bad key and range)."""
-    from diffcloth import pipeline
-    from diffcloth.fit.scene_fit import LOSSES
-    from diffcloth.physics.material import MATERIAL_FIELDS, material_range
-
-    t = sections.get("fit")
-    if t is None:
-        raise cfg.ConfigError(
-            'missing [fit] section: name the free parameters, e.g. free = ["stretch"]'
-        )
-    w = "fit"
-    keys = [f.name for f in dataclasses.fields(FitSettings) if f.name != "truth"]
-    cfg.check_keys(t, keys, w)
-    free = t.get("free")
-    if not isinstance(free, list) or not free or not all(isinstance(n, str) for n in free):
-        raise cfg.ConfigError("[fit] free must be a non-empty list of parameter names")
-    try:
-        pipeline.check_param_names(free)
-    except ValueError as err:
-        raise cfg.ConfigError(f"[fit] free: {err}") from None
-    initial = {}
-    for name, value in t.get("initial", {}).items():
-        if name not in free:
-            raise cfg.ConfigError(f"[fit.initial] {name} is not a free parameter; free: {free}")
-        initial[name] = _param_value(name, value, "fit.initial")
-    truth = {}
-    for name, value in sections.get("truth", {}).items():
-        try:
-            pipeline.check_param_names([name])
-        except ValueError as err:
-            raise cfg.ConfigError(f"[truth] {err}") from None
-        arr = _param_value(name, value, "truth")
-        if name in MATERIAL_FIELDS:
-            lo, inclusive, unit, _ = MATERIAL_FIELDS[name]
-            if not np.all(arr >= lo if inclusive else arr > lo):
-                raise cfg.ConfigError(
-                    f"[truth] {name} = {value!r} is out of range; allowed {material_range(name)} {unit}"
-                )
-        if name in _BODY_RANGES:
-            lo, hi, text = _BODY_RANGES[name]
-            if not np.all((arr > lo if name == "body_mass" else arr >= lo) & (arr <= hi)):
-                raise cfg.ConfigError(f"[truth] {name} = {value!r} is out of range; allowed {text}")
-        truth[name] = arr
-    targets = t.get("targets")
-    if targets is None and not truth:
-        raise cfg.ConfigError('give target images ([fit] targets = "folder") or a [truth] table')
-    if targets is not None:
-        if not isinstance(targets, str):
-            raise cfg.ConfigError("[fit] targets must be a folder path (string)")
-        targets = str((base_dir or Path(".")) / targets)
-    multistart = cfg.get_number(t, "multistart", 1, where=w, lo=1, hi=64, integer=True)
-    devices = cfg.get_number(t, "devices", 1, where=w, lo=1, hi=4096, integer=True)
-    check_devices(devices, multistart, "[fit] devices")
-    ident = t.get("identifiability", True)
-    if not isinstance(ident, bool):
-        raise cfg.ConfigError("[fit] identifiability must be true or false")
-    return FitSettings(
-        free=tuple(free),
-        steps=cfg.get_number(t, "steps", 60, where=w, lo=1, integer=True),
-        learning_rate=cfg.get_number(t, "learning_rate", 0.05, where=w, lo=0, lo_inclusive=False),
-        loss=cfg.get_choice(t, "loss", "l2", LOSSES, where=w),
-        patience=cfg.get_number(t, "patience", 30, where=w, lo=1, integer=True),
-        schedule=cfg.get_choice(t, "schedule", "cosine", ("cosine", "constant"), where=w),
-        noise=cfg.get_number(t, "noise", 0.0, where=w, lo=0, hi=1),
-        seed=cfg.get_number(t, "seed", 0, where=w, integer=True),
-        multistart=multistart,
-        devices=devices,
-        identifiability=ident,
-        noise_sigma=cfg.get_number(t, "noise_sigma", 0.01, where=w, lo=0, lo_inclusive=False),
-        targets=targets,
-        initial=initial,
-        truth=truth,
-    )
-
-
-def check_devices(devices: int, multistart: int, where: str = "devices") -> None:
-    """ConfigError unless the multistart guesses split evenly over the devices."""
-    if devices > 1 and multistart % devices:
-        raise cfg.ConfigError(
-            f"{where} = {devices} spreads the multistart guesses over devices, so [fit] multistart "
-            f"must be a multiple of it (got multistart = {multistart})"
-        )
+__all__ = ["FitSettings", "check_devices", "parse_fit", "run_fit_config", "video_strip"]
 
 
 def smoke_config(config: cfg.Config) -> cfg.Config:
     """A much smaller version of a config for smoke runs (CI): few frames, tiny images."""
     sim = dataclasses.replace(config.sim, num_frames=min(config.sim.num_frames, 4))
-    sections = dict(config.sections)
-    render = dict(sections.get("render", {}))
-    render.update(width=24, height=24, level=2, frame_stride=1)
-    sections["render"] = render
-    return dataclasses.replace(config, sim=sim, sections=sections)
+    render = dataclasses.replace(config.render, width=24, height=24, level=2, frame_stride=1)
+    return dataclasses.replace(config, sim=sim, render=render)
 
 
-def load_targets(folder: str, num_cameras: int) -> np.ndarray:
-    """(cameras, T, H, W, C) from a folder of PNGs (subfolders cam0, cam1, ... for several)."""
-    from diffcloth.io import load_image_sequence
+def load_targets(settings, sc) -> np.ndarray:
+    """(cameras, T, H, W, 3) linear RGB target video from the folder `settings.targets`, checked
+    against the scene before any work; ConfigError names the folder, file and what is allowed.
 
-    root = Path(folder)
+    Layout ([fit] keys): one folder per camera: `target_cameras` (names or globs inside
+    `targets`; default cam0, cam1, ..., or `targets` itself for one camera without cam0/). In each,
+    the images matching `target_glob` (default "*.png"; may name a subfolder, "rgb/*.png"),
+    sorted naturally (frame_2 before frame_10); of those, `target_frames = [first, stop]` (default
+    all) every `target_stride`-th. The images left must be exactly the video's frames: image i
+    shows the scene's rendered frame i, i.e. simulated frame (i + 1) * frame_stride with
+    [render] first_frame = 1 (default: the initial state is not drawn) or i * frame_stride with
+    first_frame = 0. `colorspace`: "auto" (default: the PNG's sRGB/gAMA chunk, else sRGB for 8-bit
+    files and linear for 16-bit ones), "srgb" or "linear"; targets are converted to linear RGB.
+    """
+    from diffcloth.io import load_image
+    from diffcloth.io.media import _natural_key
+
+    root = Path(settings.targets)
     if not root.is_dir():
-        raise cfg.ConfigError(f"[fit] targets = {folder!r} is not a folder")
-    if num_cameras == 1 and not (root / "cam0").is_dir():
-        return load_image_sequence(root)[None]
-    return np.stack([load_image_sequence(root / f"cam{i}") for i in range(num_cameras)])
+        raise cfg.ConfigError(f"[fit] targets = {str(root)!r} is not a folder")
+    n_cams = len(sc.cameras)
+    if settings.target_cameras is not None:
+        names = list(settings.target_cameras)
+        if len(names) != n_cams:
+            raise cfg.ConfigError(
+                f"[fit] target_cameras names {len(names)} folder(s) {names}, but the scene has "
+                f"{n_cams} camera(s)"
+            )
+    elif n_cams == 1 and not (root / "cam0").is_dir():
+        names = ["."]
+    else:
+        names = [f"cam{i}" for i in range(n_cams)]
+    _, T, H, W, _ = sc.video_shape
+    videos = []
+    for cam, name in enumerate(names):
+        hits = [p for p in sorted(root.glob(name)) if p.is_dir()] if name != "." else [root]
+        if len(hits) != 1:
+            what = "no folder" if not hits else f"{len(hits)} folders ({[h.name for h in hits]})"
+            raise cfg.ConfigError(
+                f"[fit] targets: camera {cam} needs one folder {str(root / name)!r}, found {what}; "
+                f"give one folder per camera (cam0, cam1, ... or [fit] target_cameras)"
+            )
+        folder = hits[0]
+        files = sorted((p for p in folder.glob(settings.target_glob) if p.is_file()),
+                       key=_natural_key)  # fmt: skip
+        if not files:
+            raise cfg.ConfigError(
+                f"[fit] targets: no files matching {settings.target_glob!r} in {str(folder)!r} "
+                f"(camera {cam}); the folder is empty or the pattern ([fit] target_glob) is wrong"
+            )
+        first, stop = settings.target_frames or (0, len(files))
+        if stop > len(files):
+            raise cfg.ConfigError(
+                f"[fit] target_frames = [{first}, {stop}] but {str(folder)!r} has only "
+                f"{len(files)} matching images"
+            )
+        chosen = files[first:stop:settings.target_stride]
+        if len(chosen) != T:
+            more = "missing" if len(chosen) < T else "extra"
+            raise cfg.ConfigError(
+                f"[fit] targets: {str(folder)!r} gives {len(chosen)} images (of {len(files)} "
+                f"matching {settings.target_glob!r}, frames [{first}, {stop}) every "
+                f"{settings.target_stride}), but the scene renders {T} frames (num_frames "
+                f"{sc.num_frames} // frame_stride {sc.frame_stride}): {abs(len(chosen) - T)} "
+                f"{more}; image i must show rendered frame i (set target_frames/target_stride, or "
+                "[sim] num_frames / [render] frame_stride)"
+            )
+        frames = []
+        for p in chosen:
+            try:
+                img = load_image(p, colorspace=settings.colorspace)
+            except (OSError, ValueError) as err:
+                raise cfg.ConfigError(f"[fit] targets: cannot read {str(p)!r}: {err}") from None
+            if img.shape[:2] != (H, W):
+                raise cfg.ConfigError(
+                    f"[fit] targets: {str(p)!r} is {img.shape[1]}x{img.shape[0]} pixels, the "
+                    f"scene renders {W}x{H} ([render] width, height)"
+                )
+            if img.shape[2] != 3:
+                kind = {1: "grey", 2: "grey + alpha", 4: "RGBA"}.get(img.shape[2], "odd")
+                raise cfg.ConfigError(
+                    f"[fit] targets: {str(p)!r} is a {kind} image ({img.shape[2]} channels); "
+                    "targets must be RGB (3 channels, no alpha): convert them first"
+                )
+            if not np.all(np.isfinite(img)):
+                raise cfg.ConfigError(f"[fit] targets: {str(p)!r} holds NaN/inf pixels")
+            frames.append(img)
+        videos.append(np.stack(frames))
+    return np.stack(videos)
 
 
 def video_strip(video: np.ndarray) -> np.ndarray:
@@ -178,9 +123,41 @@ def video_strip(video: np.ndarray) -> np.ndarray:
     return np.concatenate(list(np.asarray(video)), axis=2)
 
 
-def _display(video) -> np.ndarray:
-    """Linear RGB -> display (gamma 2.2), clipped to [0, 1]."""
-    return np.clip(np.asarray(video), 0.0, 1.0) ** (1.0 / 2.2)
+@functools.lru_cache(maxsize=16)
+def _optimizer(learning_rate: float, schedule: str, steps: int):
+    """Adam with clipping (and the cosine schedule); cached, so equal settings in one process
+    reuse the compiled fit step (a resumed fit, a rerun)."""
+    import optax
+
+    rate = learning_rate
+    if schedule == "cosine":
+        rate = optax.cosine_decay_schedule(rate, steps, alpha=0.1)
+    return optax.chain(optax.clip_by_global_norm(1.0), optax.adam(rate))
+
+
+def _check_values(sc, values: Mapping, where: str) -> None:
+    """[truth]/[fit.initial] values against the scene: shapes and ranges (ConfigError)."""
+    from diffcloth import pipeline
+
+    try:
+        pipeline.check_param_values(sc, dict(values))
+    except ValueError as err:
+        raise cfg.ConfigError(f"[{where}] {err}") from None
+
+
+def _fmt_params(params: Mapping) -> str:
+    return ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in params.items())
+
+
+def _status_line(status: str) -> str:
+    return {
+        "converged": "converged: the loss reached its tolerance",
+        "stalled": "stalled: no relative improvement for `patience` steps",
+        "max_steps": "max_steps: ran all steps",
+        "nonfinite": "nonfinite: stopped on a non-finite loss or gradient",
+        "interrupted": "interrupted: stopped by a signal; resume with --resume",
+        "stopped": "stopped by a callback",
+    }.get(status, status)
 
 
 def run_fit_config(
@@ -193,48 +170,118 @@ def run_fit_config(
     progress: bool = True,
     title: str | None = None,
     extra_sections: Mapping[str, str] | None = None,
+    overwrite: bool = False,
+    resume: bool = False,
+    stop=None,
+    checkpoint_every: int = 10,
 ) -> dict:
     """Load a fit config, make or load the targets, fit, and write the results folder.
 
-    Writes to out_dir: result.json, loss.png, params.png, compare.gif (target | fit | difference,
-    cameras side by side), report.md, identifiability.json (when enabled), config.toml (a copy).
-    Returns the summary dict written to result.json (plus "out_dir").
-    """
-    import jax
+    Every check (config, sizes and memory, targets, the output folder) runs before any work. The
+    results are written to a temporary folder next to `out_dir` and moved into place when
+    complete (`diffcloth.outdir.OutputDir`): result.json (with "status": converged / stalled /
+    max_steps / nonfinite / interrupted), metrics.jsonl, loss.png, params.png, compare.gif (target
+    | fit | difference, cameras side by side, sRGB-encoded), report.md, identifiability.json
+    (when enabled), config.toml (a copy), checkpoint.npz (+ .json: to resume from).
 
+    Args:
+      overwrite: replace a non-empty `out_dir` (as a whole: no stale file survives).
+      resume: continue the fit from `out_dir`/checkpoint.npz (written by an earlier run of the
+        same config, interrupted or not); the result equals that of an uninterrupted run.
+      stop: an event (`is_set()`) that interrupts the fit after the current step (see
+        `diffcloth.fit.interrupt.catch_interrupts`): the checkpoint and a partial report marked
+        "interrupted" are written, and the summary's status is "interrupted".
+      checkpoint_every: also write the checkpoint every this many steps.
+    Returns:
+      The summary dict written to result.json (plus "out_dir", "total_s").
+    Raises:
+      ConfigError, UsageError, MemoryLimitError (a ValueError each) for bad input, before any work.
+    """
     from diffcloth import fit as dcfit
-    from diffcloth import pipeline, report, scene
+    from diffcloth import memory, scene
+    from diffcloth.outdir import OutputDir, UsageError
 
     config_path = Path(config_path)
     config = cfg.load_config(config_path)
-    settings = parse_fit(config.sections, config_path.parent)
+    if config.fit is None:
+        raise cfg.ConfigError(
+            f"{config_path}: missing [fit] section: name the free parameters, "
+            'e.g. free = ["stretch"]'
+        )
+    settings = config.fit
     if smoke:
         config = smoke_config(config)
         settings = dataclasses.replace(settings, steps=2, multistart=min(settings.multistart, 2))
         settings = dataclasses.replace(settings, devices=min(settings.devices, settings.multistart))
     if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise UsageError(f"--steps must be an integer >= 1, got {steps!r}")
         settings = dataclasses.replace(settings, steps=steps)
     if devices is not None:
         check_devices(devices, settings.multistart, "--devices")
         settings = dataclasses.replace(settings, devices=devices)
+    sizes = memory.JobSizes.from_config(config)
+    memory.check_memory(
+        memory.estimate_memory(sizes, "fit", multistart=settings.multistart),
+        f"fitting {config_path.name} ({sizes.num_frames} frames, {sizes.cameras} camera(s) "
+        f"{sizes.width}x{sizes.height}, net {sizes.rows}x{sizes.cols}, "
+        f"multistart {settings.multistart})",
+        hint="lower [render] width/height, [sim] num_frames, the net size or multistart",
+    )
     sc = scene.build_scene(config)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.toml").write_bytes(config_path.read_bytes())
-
-    t0 = time.perf_counter()
+    _check_values(sc, settings.truth, "truth")
+    _check_values(sc, settings.initial, "fit.initial")
+    targets = None
     if settings.targets is not None:
-        targets = load_targets(settings.targets, len(sc.cameras))
-    else:
+        targets = load_targets(settings, sc)
+    out = OutputDir(out_dir, overwrite=overwrite, resume=resume)
+    ckpt = None
+    if resume:
+        path = out.path / "checkpoint.npz"
+        if not path.is_file():
+            out.discard()
+            raise UsageError(
+                f"--resume: no checkpoint {str(path)!r}; run without --resume to start afresh"
+            )
+        try:
+            ckpt = dcfit.load_checkpoint(path)
+        except ValueError as err:
+            out.discard()
+            raise UsageError(f"--resume: {err}") from None
+    try:
+        summary = _run_fit(
+            config_path, settings, sc, targets, out, ckpt, stop, progress, title, extra_sections,
+            checkpoint_every,
+        )  # fmt: skip
+    except BaseException:
+        out.discard()
+        raise
+    out.commit()
+    summary["out_dir"] = str(out.path)
+    return summary
+
+
+def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, title, extra_sections,
+             checkpoint_every) -> dict:  # fmt: skip
+    import jax
+
+    from diffcloth import fit as dcfit
+    from diffcloth import pipeline, report
+
+    tmp = out.tmp
+    (tmp / "config.toml").write_bytes(config_path.read_bytes())
+    t0 = time.perf_counter()
+    if targets is None:
         targets = np.asarray(
             dcfit.make_targets(sc, settings.truth, noise=settings.noise, seed=settings.seed)
         )
-    import optax
-
-    rate = settings.learning_rate
-    if settings.schedule == "cosine":
-        rate = optax.cosine_decay_schedule(rate, settings.steps, alpha=0.1)
-    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(rate))
+        if not np.all(np.isfinite(targets)):
+            where = pipeline.diagnose(sc, dict(settings.truth)) or "non-finite target video"
+            raise cfg.ConfigError(
+                f"[truth] {_fmt_params(settings.truth)}: the simulation of the true values is not "
+                f"usable ({where}); choose values the scene can simulate, or lower [sim] dt"
+            )
+    optimizer = _optimizer(settings.learning_rate, settings.schedule, settings.steps)
     result = dcfit.fit(
         sc,
         targets,
@@ -248,26 +295,61 @@ def run_fit_config(
         seed=settings.seed,
         patience=settings.patience,
         progress=progress,
+        checkpoint_path=tmp / "checkpoint.npz",
+        checkpoint_every=checkpoint_every,
+        resume=ckpt,
+        stop=stop,
     )
     multi = None
     if settings.multistart > 1:
         multi, result = result, result.best
+        if "interrupted" in multi.statuses and result.status != "interrupted":
+            result = dataclasses.replace(
+                result, status="interrupted", message=next(
+                    r.message for r in multi.results if r.status == "interrupted")
+            )  # fmt: skip
+    # the checkpoint ends up in out_dir, not in the temporary folder the messages name
+    result = dataclasses.replace(
+        result, message=result.message.replace(str(tmp), str(out.path)),
+        checkpoint_path=str(out.path / "checkpoint.npz"),
+    )  # fmt: skip
+    interrupted = result.status == "interrupted"
     diagnosis = None
     if result.status == "nonfinite":  # name the stage where the values stopped being finite
         bad = {k: v[-1] for k, v in result.history.params.items()}
-        diagnosis = pipeline.diagnose(sc, bad) or (
-            "every stage is finite at the last parameters: the loss or its gradient overflowed "
-            "(lower the learning rate?)"
-        )
-    render_fn = jax.jit(pipeline.simulate_and_render)
-    fitted_video = np.asarray(render_fn(sc, {k: np.asarray(v) for k, v in result.params.items()}))
+        diagnosis = pipeline.diagnose(sc, bad)
+        lr = f"[fit] learning_rate (now {settings.learning_rate:g})"
+        if diagnosis is None:
+            diagnosis = (
+                "every stage is finite at the last parameters: the loss or its gradient "
+                f"overflowed; lower {lr}"
+            )
+        elif pipeline.diagnose(sc, result.initial) is None:
+            diagnosis = (
+                f"the optimizer stepped to {_fmt_params(bad)}, where the pipeline fails "
+                f"({diagnosis.split(' (')[0]}), while the starting values work: lower {lr} or "
+                "start closer; lower [sim] dt only if such values are physical"
+            )
+    fitted_video = None
     ident = None
-    if settings.identifiability:
-        ident = dcfit.scene_identifiability(
-            sc, targets, result.params, noise_sigma=settings.noise_sigma
+    if not interrupted:  # a partial report skips the slow parts
+        render_fn = jax.jit(pipeline.simulate_and_render)
+        fitted_video = np.asarray(
+            render_fn(sc, {k: np.asarray(v) for k, v in result.params.items()})
         )
+        if settings.identifiability and result.status != "nonfinite":
+            ident = dcfit.scene_identifiability(
+                sc, targets, result.params, noise_sigma=settings.noise_sigma
+            )
     truth = {k: v for k, v in settings.truth.items() if k in settings.free} or None
-    sections = dict(extra_sections or {})
+    sections = {}
+    if interrupted:
+        sections["Interrupted"] = (
+            f"This is a partial report: {result.message}. The parameters are the best found so "
+            f"far. Continue with `diffcloth fit {config_path} --out {out.path} --resume`; the "
+            "resumed fit ends where an uninterrupted one would."
+        )
+    sections.update(extra_sections or {})
     if multi is not None:
         sections["Multi-start"] = (
             f"{settings.multistart} starts fitted at once with vmap"
@@ -286,22 +368,24 @@ def run_fit_config(
         f"total time including compilation {time.perf_counter() - t0:.1f} s."
     )
     report.write_fit_report(
-        out,
+        tmp,
         result,
         truth=truth,
         initial=result.initial,
-        target=_display(video_strip(targets)),
-        fitted=_display(video_strip(fitted_video)),
+        target=None if fitted_video is None else video_strip(targets),  # linear
+        fitted=None if fitted_video is None else video_strip(fitted_video),
         fps=10.0,
         gain=4.0,
         identifiability=ident,
         extra_sections=sections,
-        title=title or f"Fit: {config_path.name}",
+        title=(title or f"Fit: {config_path.name}") + (" (interrupted)" if interrupted else ""),
+        plots=not interrupted or len(result.history) > 1,
     )
     summary = report.fit_summary(result, truth, result.initial)
-    summary["out_dir"] = str(out)
-    summary["status"] = result.status
     if diagnosis is not None:
         summary["diagnosis"] = diagnosis
     summary["total_s"] = time.perf_counter() - t0
+    from diffcloth.io import save_json
+
+    save_json(tmp / "result.json", summary)
     return summary

@@ -15,21 +15,33 @@ from collections.abc import Mapping
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from diffcloth import physics, render, surface
+from diffcloth.physics.massspring import MASS_SPRING_FIELDS
 from diffcloth.physics.material import MATERIAL_FIELDS
-from diffcloth.render.lights import _APPEARANCE_DEFAULTS
+from diffcloth.render.lights import appearance_fields
 from diffcloth.shapes import Sphere
 
 __all__ = [
+    "NUISANCE_PARAMETERS",
+    "NUISANCE_RANGES",
     "PARAMETERS",
+    "PARAMETER_RANGES",
+    "ParamRange",
     "apply_params",
+    "check_param_values",
     "diagnose",
+    "first_bad_frame",
     "param_value",
+    "params_in_range",
     "render_frames",
+    "rendered_states",
     "simulate",
     "simulate_all",
     "simulate_and_render",
+    "simulate_and_render_checked",
+    "trajectory_status",
 ]
 
 #: body parameter name -> RigidBody field; values are per body, (num_bodies,) or (num_bodies, 3).
@@ -41,13 +53,127 @@ BODY_PARAMETERS = {
     "body_position": "position",
 }
 
+#: nuisance parameter name -> (scene field, field inside it): what a real capture adds.
+#: Lights: per light ((nd, 3) / (nd,) / (np, 3) / (np,) / (3,)); capture: per camera (see
+#: `render.Capture`). Albedos are the appearance parameters "diffuse" and "sphere_color".
+NUISANCE_PARAMETERS: dict[str, tuple[str, str]] = {
+    "light_direction": ("lights", "direction"),
+    "light_intensity": ("lights", "direction_intensity"),
+    "point_light_position": ("lights", "point_position"),
+    "point_light_intensity": ("lights", "point_intensity"),
+    "ambient_light": ("lights", "ambient"),
+    "exposure": ("capture", "exposure"),
+    "camera_rotation": ("capture", "rotation"),
+    "camera_translation": ("capture", "translation"),
+    "background": ("capture", "background"),
+}
+
+#: allowed (low, high) of the nuisance parameters (inclusive; None = unbounded). apply_params
+#: checks concrete values against them; `fit.default_constraint` keeps fits inside.
+NUISANCE_RANGES: dict[str, tuple[float | None, float | None]] = {
+    "light_direction": (None, None),
+    "light_intensity": (0.0, None),
+    "point_light_position": (None, None),
+    "point_light_intensity": (0.0, None),
+    "ambient_light": (0.0, None),
+    "exposure": (0.0, None),
+    "camera_rotation": (-0.2, 0.2),  # rad per axis: a small pose error, not a new camera
+    "camera_translation": (-0.2, 0.2),  # m per axis
+    "background": (0.0, 1.0),
+}
+
 #: name -> (scene field, field inside it). Every fittable parameter of a scene.
 PARAMETERS: dict[str, tuple[str, str]] = {
     **{name: ("material", name) for name in MATERIAL_FIELDS},
+    # the Provot mass-spring model's own fields (density and friction are shared)
+    **{name: ("material", name) for name in MASS_SPRING_FIELDS},
     "wind": ("sim", "wind"),
-    **{name: ("appearance", name) for name in _APPEARANCE_DEFAULTS},
+    **{name: ("appearance", name) for name in appearance_fields()},
     **{name: ("bodies", field) for name, field in BODY_PARAMETERS.items()},
+    **NUISANCE_PARAMETERS,
 }
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamRange:
+    """Allowed values of a parameter: lo/hi bounds (None: unbounded), inclusive or not, unit."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_inclusive: bool = True
+    hi_inclusive: bool = True
+    unit: str = ""
+
+    def text(self) -> str:
+        left = "[" if self.lo_inclusive and self.lo is not None else "("
+        right = "]" if self.hi_inclusive and self.hi is not None else ")"
+        lo = "-inf" if self.lo is None else f"{self.lo:g}"
+        hi = "inf" if self.hi is None else f"{self.hi:g}"
+        return f"{left}{lo}, {hi}{right}" + (f" {self.unit}" if self.unit else "")
+
+    def contains(self, a) -> bool:
+        """True when every element of the array `a` is finite and inside the range."""
+        a = np.asarray(a, np.float64)
+        ok = np.isfinite(a)
+        if self.lo is not None:
+            ok &= a >= self.lo if self.lo_inclusive else a > self.lo
+        if self.hi is not None:
+            ok &= a <= self.hi if self.hi_inclusive else a < self.hi
+        return bool(np.all(ok))
+
+
+def _parameter_ranges() -> dict[str, ParamRange]:
+    from diffcloth.render.lights import _NONNEGATIVE, _POSITIVE
+
+    table = {
+        name: ParamRange(lo, None, inclusive, True, unit)
+        for fields in (MASS_SPRING_FIELDS, MATERIAL_FIELDS)
+        for name, (lo, inclusive, unit, _) in fields.items()
+    }
+    table.update({name: ParamRange(lo, hi) for name, (lo, hi) in NUISANCE_RANGES.items()})
+    table.update({name: ParamRange(0.0, None, False) for name in _POSITIVE})
+    table.update({name: ParamRange(0.0) for name in _NONNEGATIVE})
+    table.update(
+        body_mass=ParamRange(0.0, None, False, unit="kg"),
+        body_restitution=ParamRange(0.0, 1.0),
+        body_friction=ParamRange(0.0),
+    )
+    return table
+
+
+#: name -> ParamRange: the values `apply_params` accepts (the config sections' ranges). A parameter
+#: not listed only has to be finite. New parameters add a row here.
+PARAMETER_RANGES: dict[str, ParamRange] = _parameter_ranges()
+
+
+def check_param_values(scene, params: Mapping) -> None:
+    """Eager check of concrete parameter values: names, shapes (broadcastable to the scene's
+    value) and ranges (PARAMETER_RANGES; NaN/inf never allowed). Traced values (inside jit) are
+    skipped; use `simulate_and_render_checked` for those. Raises ValueError naming the parameter,
+    the value and the allowed range."""
+    check_param_names(params)
+    for name, value in params.items():
+        old = param_value(scene, name)
+        shape = np.shape(value)  # works for lists and tracers alike
+        try:
+            np.broadcast_shapes(shape, old.shape)
+            ok_shape = np.broadcast_shapes(shape, old.shape) == tuple(old.shape)
+        except ValueError:
+            ok_shape = False
+        if not ok_shape:
+            raise ValueError(
+                f"parameter {name}: shape {shape} does not fit the scene's value of shape "
+                f"{tuple(old.shape)} (give a scalar or an array of that shape)"
+            )
+        if isinstance(value, jax.core.Tracer):
+            continue
+        a = np.asarray(value, np.float64)
+        rng = PARAMETER_RANGES.get(name, ParamRange())
+        if not rng.contains(a):
+            raise ValueError(
+                f"parameter {name} = {a.tolist()} is out of range; allowed {rng.text()} "
+                "(finite values only)"
+            )
 
 
 def check_param_names(names) -> None:
@@ -64,6 +190,41 @@ def _check_bodies(scene, name: str) -> None:
         raise ValueError(f"{name}: the scene has no rigid bodies (add [[bodies]] to the config)")
 
 
+def scene_capture(scene) -> render.Capture:
+    """The scene's Capture, or the neutral one (gain 1, no pose error, the scene's background)."""
+    if getattr(scene, "capture", None) is not None:
+        return scene.capture
+    n, dtype = len(scene.cameras), scene.cameras[0].view.dtype
+    bg = jnp.asarray(scene.background, dtype)  # static, but maybe jnp values (traced as consts)
+    return render.Capture(
+        exposure=jnp.ones((n,), dtype),
+        rotation=jnp.zeros((n, 3), dtype),
+        translation=jnp.zeros((n, 3), dtype),
+        background=jnp.broadcast_to(bg, (n, 3)),
+    )
+
+
+def check_nuisance_ranges(params: Mapping[str, jax.Array]) -> None:
+    """ValueError naming the parameter and its range for a concrete nuisance value outside
+    NUISANCE_RANGES (traced values are not checked)."""
+    import numpy as np
+
+    for name, value in params.items():
+        if name not in NUISANCE_RANGES or isinstance(value, jax.core.Tracer):
+            continue
+        lo, hi = NUISANCE_RANGES[name]
+        v = np.asarray(value, np.float64)
+        bad = ~np.isfinite(v)
+        if lo is not None:
+            bad |= v < lo
+        if hi is not None:
+            bad |= v > hi
+        if np.any(bad):
+            lo_s = "-inf" if lo is None else f"{lo:g}"
+            hi_s = "inf" if hi is None else f"{hi:g}"
+            raise ValueError(f"{name} = {v.tolist()} is outside its range [{lo_s}, {hi_s}]")
+
+
 def param_value(scene, name: str) -> jax.Array:
     """The scene's current value of a named parameter (body parameters: stacked over bodies)."""
     check_param_names([name])
@@ -71,7 +232,15 @@ def param_value(scene, name: str) -> jax.Array:
     if group == "bodies":
         _check_bodies(scene, name)
         return jnp.stack([getattr(b, field) for b in scene.bodies])
-    return getattr(getattr(scene, group), field)
+    if group == "capture":
+        return getattr(scene_capture(scene), field)
+    target = getattr(scene, group)
+    if not hasattr(target, field):
+        raise ValueError(
+            f"parameter {name!r} does not exist in this scene's {group} "
+            f"({type(target).__name__}; [material] model decides which names apply)"
+        )
+    return getattr(target, field)
 
 
 def apply_params(scene, params: Mapping[str, jax.Array] | None):
@@ -80,7 +249,8 @@ def apply_params(scene, params: Mapping[str, jax.Array] | None):
     one value for all of them."""
     if not params:
         return scene
-    check_param_names(params)
+    check_param_values(scene, params)
+    check_nuisance_ranges(params)
     groups: dict[str, dict] = {}
     for name, value in params.items():
         group, field = PARAMETERS[name]
@@ -89,7 +259,10 @@ def apply_params(scene, params: Mapping[str, jax.Array] | None):
             jnp.asarray(value, old.dtype), old.shape
         )
     body_fields = groups.pop("bodies", None)
+    capture_fields = groups.pop("capture", None)
     changes = {g: dataclasses.replace(getattr(scene, g), **f) for g, f in groups.items()}
+    if capture_fields:
+        changes["capture"] = dataclasses.replace(scene_capture(scene), **capture_fields)
     if body_fields:
         changes["bodies"] = tuple(
             dataclasses.replace(b, **{f: v[i] for f, v in body_fields.items()})
@@ -143,17 +316,43 @@ def simulate(scene, params=None) -> physics.ClothState:
     )
 
 
-def render_frame(scene, x: jax.Array, spheres=None, boxes=None) -> jax.Array:
+def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False, boxes=None):
     """One control net (rows, cols, 3) -> images (num_cameras, H, W, 3) of the scene.
 
-    spheres: this frame's spheres (default: the scene's static spheres); boxes: this frame's
-    `render.boxes.BoxPoses` (box bodies, drawn with the cloth) or None."""
+    spheres: this frame's spheres (default: the scene's static spheres).
+    boxes: this frame's `render.boxes.BoxPoses` (box bodies, drawn with the cloth; they cast
+    shadows) or None.
+    with_mask: also return the visible cloth coverage (num_cameras, H, W) (see `render.render`'s
+    return_cloth_mask); returns (images, masks).
+    With a `scene.capture`, each camera gets its pose error, background and exposure gain (the
+    gain multiplies the whole image, background included; the mask is not scaled)."""
     spheres = scene.spheres if spheres is None else spheres
     surf = surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
     if spheres is not None:
-        surf = surface.collide_surface(surf, spheres)
-    images = [
-        render.render(
+        surf = surface.collide_surface(surf, spheres, offset=scene.push_out_offset)
+    capture = getattr(scene, "capture", None)
+    planes = None
+    if getattr(scene, "draw_planes", False) and scene.colliders is not None:
+        planes = split_colliders(scene.colliders)[0]
+    # shadow maps of this frame, shared by every camera (None when no light casts shadows)
+    occluders = None
+    if boxes is not None:
+        box_verts, _, box_faces = render.boxes.box_mesh(boxes)
+        occluders = (box_verts, box_faces)
+    maps = render.frame_shadow_maps(
+        surf,
+        scene.lights,
+        spheres=spheres,
+        occluders=occluders,
+        size=getattr(scene, "shadow_map_size", 256),
+    )
+    images, masks = [], []
+    for i, camera in enumerate(scene.cameras):
+        background = scene.background
+        if capture is not None:
+            camera = render.perturb_camera(camera, capture.rotation[i], capture.translation[i])
+            background = capture.background[i]
+        img, mask = render.render(
             surf,
             camera,
             scene.lights,
@@ -161,11 +360,20 @@ def render_frame(scene, x: jax.Array, spheres=None, boxes=None) -> jax.Array:
             scene.appearance,
             spheres=spheres,
             textures=scene.textures,
-            background=scene.background,
+            background=background,
+            return_cloth_mask=True,
+            planes=planes,
+            plane_color=getattr(scene, "plane_color", render.PLANE_COLOR),
+            shadow_maps=maps,
             boxes=boxes,
-        )[..., :3]
-        for camera in scene.cameras
-    ]
+        )
+        img = img[..., :3]
+        if capture is not None:
+            img = img * capture.exposure[i]
+        images.append(img)
+        masks.append(mask)
+    if with_mask:
+        return jnp.stack(images), jnp.stack(masks)
     return jnp.stack(images)
 
 
@@ -173,7 +381,7 @@ def frame_spheres(scene, body_traj: tuple):
     """Per-frame spheres to draw: the static ones plus the sphere bodies at each frame.
 
     Returns None (no spheres) or a Sphere with center (T, n, 3) and radius (n,). Box bodies are
-    drawn as triangles (see `frame_boxes`).
+    drawn as triangles (`rendered_boxes`).
     """
     balls = [b for b in body_traj if b.shape == "sphere"]
     if not balls:
@@ -192,17 +400,12 @@ def frame_spheres(scene, body_traj: tuple):
     )
 
 
-def frame_boxes(body_traj: tuple):
-    """Per-frame poses of the box bodies (`render.boxes.BoxPoses` with leaves (T, b, ...)), or
-    None without boxes."""
-    return render.boxes.box_poses(body_traj)
-
-
-def render_frames(scene, xs: jax.Array, spheres=None, boxes=None) -> jax.Array:
+def render_frames(scene, xs: jax.Array, spheres=None, *, with_mask: bool = False, boxes=None):
     """Control nets (T, rows, cols, 3) -> video (num_cameras, T, H, W, 3).
 
     spheres: optional per-frame spheres (center (T, n, 3), radius (n,)), e.g. `frame_spheres`.
-    boxes: optional per-frame box poses (leaves (T, b, ...)), e.g. `frame_boxes`.
+    boxes: optional per-frame box poses (leaves (T, b, ...)), e.g. `rendered_boxes`.
+    with_mask: also return the cloth coverage video (num_cameras, T, H, W): (video, masks).
     Frames are rendered one after another (`lax.map`) with the frame body checkpointed, so the
     memory of a gradient through a long video is that of a few frames plus the trajectory.
     """
@@ -211,32 +414,137 @@ def render_frames(scene, xs: jax.Array, spheres=None, boxes=None) -> jax.Array:
 
     def one(a):
         x, c, b = a
-        return render_frame(scene, x, None if c is None else Sphere(c, radius), b)
+        sph = None if c is None else Sphere(c, radius)
+        return render_frame(scene, x, sph, with_mask=with_mask, boxes=b)
 
     frames = jax.lax.map(jax.checkpoint(one), (xs, centers, boxes))
-    return jnp.moveaxis(frames, 0, 1)
+    return jax.tree_util.tree_map(lambda f: jnp.moveaxis(f, 0, 1), frames)
 
 
-def simulate_and_render(scene, params=None) -> jax.Array:
+def params_in_range(scene) -> jax.Array:
+    """() bool, traceable: every parameter of the scene lies in PARAMETER_RANGES and is finite
+    (the traced twin of `check_param_values`: density 0 or stretch -40 passed inside jit)."""
+    ok = jnp.asarray(True)
+    for name, rng in PARAMETER_RANGES.items():
+        group = PARAMETERS[name][0]
+        if group == "bodies" and not scene.bodies:
+            continue
+        try:
+            v = param_value(scene, name)
+        except ValueError:  # not a parameter of this scene (e.g. the other material model)
+            continue
+        good = jnp.isfinite(v)
+        if rng.lo is not None:
+            good &= v >= rng.lo if rng.lo_inclusive else v > rng.lo
+        if rng.hi is not None:
+            good &= v <= rng.hi if rng.hi_inclusive else v < rng.hi
+        ok &= jnp.all(good)
+    return ok
+
+
+def trajectory_status(scene, traj, bodies=()) -> jax.Array:
+    """() bool, traceable: the parameters are in range (`params_in_range`), the cloth trajectory
+    is finite and not blown up (`physics.frames_ok`, which allows a long free fall), and every
+    rigid body stays finite."""
+    ok = physics.trajectory_ok(scene.net, traj, scene.sim, scene.state) & params_in_range(scene)
+    for b in bodies:
+        ok &= jnp.all(jnp.isfinite(b.position)) & jnp.all(jnp.isfinite(b.velocity))
+    return ok
+
+
+def rendered_states(scene, traj, bodies=()):
+    """The states the video shows: (control nets (T_video, rows, cols, 3), per-frame spheres or
+    None). With frame_stride k the video has T_video = num_frames // k images: simulated frames
+    k, 2k, ... (first_frame = 1; frame j is the state after j frames, the trajectory's entry
+    j - 1) or 0, k, 2k, ... (first_frame = 0, starting from the initial state)."""
+    k = scene.frame_stride
+    n = scene.num_frames // k
+    if scene.first_frame == 1:
+        xs = traj.x[k - 1 :: k][:n]
+        spheres = frame_spheres(scene, bodies)
+        if spheres is not None:
+            spheres = Sphere(spheres.center[k - 1 :: k][:n], spheres.radius)
+        return xs, spheres
+    xs = jnp.concatenate([scene.state.x[None], traj.x[k - 1 :: k][: n - 1]])
+    if bodies:
+        bodies = tuple(
+            jax.tree_util.tree_map(lambda a0, a: jnp.concatenate([a0[None], a]), b0, b)
+            for b0, b in zip(scene.bodies, bodies, strict=True)
+        )
+    spheres = frame_spheres(scene, bodies)
+    if spheres is not None:
+        idx = np.arange(n) * k
+        spheres = Sphere(spheres.center[idx], spheres.radius)
+    return xs, spheres
+
+
+def rendered_boxes(scene, bodies=()):
+    """Poses of the box bodies at the frames the video shows (as `rendered_states`):
+    `render.boxes.BoxPoses` with leaves (T_video, b, ...), or None without boxes."""
+    if not any(b.shape == "box" for b in bodies):
+        return None
+    k = scene.frame_stride
+    n = scene.num_frames // k
+    poses = render.boxes.box_poses(bodies)
+    if scene.first_frame == 1:
+        return jax.tree_util.tree_map(lambda a: a[k - 1 :: k][:n], poses)
+    first = render.boxes.box_poses(scene.bodies)
+    idx = np.arange(n) * k
+    return jax.tree_util.tree_map(lambda a0, a: jnp.concatenate([a0[None], a])[idx], first, poses)
+
+
+def first_bad_frame(scene, traj, bodies=()) -> int | None:
+    """Eager: the first frame whose cloth (or body) state is non-finite or blown up, or None."""
+    ok = np.asarray(physics.frames_ok(scene.net, traj, scene.sim, scene.state))
+    for b in bodies:
+        ok = ok & np.isfinite(np.asarray(b.position)).reshape(ok.shape[0], -1).all(axis=1)
+        ok = ok & np.isfinite(np.asarray(b.velocity)).reshape(ok.shape[0], -1).all(axis=1)
+    return None if ok.all() else int(np.argmin(ok))
+
+
+def _simulate_and_render(scene, params, with_mask=False):
+    scene = apply_params(scene, params)
+    traj, bodies = simulate_all(scene)
+    xs, spheres = rendered_states(scene, traj, bodies)
+    out = render_frames(
+        scene, xs, spheres, with_mask=with_mask, boxes=rendered_boxes(scene, bodies)
+    )
+    return out, trajectory_status(scene, traj, bodies)
+
+
+def _nan_unless(ok, out):
+    return jax.tree_util.tree_map(lambda a: jnp.where(ok, a, jnp.nan), out)
+
+
+def simulate_and_render(scene, params=None, *, with_mask: bool = False):
     """Parameters -> physics -> surface -> collision -> render, for every camera.
 
     Args:
       scene: a `diffcloth.Scene` (see `diffcloth.scene`).
       params: optional dict name -> value overriding the scene's own (see `PARAMETERS`);
-        differentiable.
+        differentiable. Concrete values are checked against PARAMETER_RANGES (ValueError).
+      with_mask: also return the visible cloth coverage (num_cameras, T, H, W) in [0, 1], soft at
+        silhouettes (for the mask losses of `diffcloth.fit.masks`).
     Returns:
-      video (num_cameras, T, H, W, 3), linear RGB, T = num_frames // frame_stride (frames frame_stride, 2 frame_stride, ...).
+      video (num_cameras, T, H, W, 3), linear RGB, T = num_frames // frame_stride: simulated
+      frames k, 2k, ... for frame_stride k (the initial state is not drawn), or 0, k, 2k, ...
+      with scene.first_frame = 0 (see `rendered_states`). When a parameter is out of range
+      (checked eagerly for concrete values, by `params_in_range` for traced ones) or the
+      simulation becomes non-finite or blows up, the whole video is NaN, so a loss on it is NaN
+      and a fit stops with status "nonfinite"; a blow-up never comes out as a finite picture. Use
+      `simulate_and_render_checked` for an explicit flag. With with_mask: (video, masks).
     """
-    scene = apply_params(scene, params)
-    traj, bodies = simulate_all(scene)
-    k = scene.frame_stride
-    spheres = frame_spheres(scene, bodies)
-    if spheres is not None:
-        spheres = Sphere(spheres.center[k - 1 :: k], spheres.radius)
-    boxes = frame_boxes(bodies)
-    if boxes is not None:
-        boxes = jax.tree.map(lambda a: a[k - 1 :: k], boxes)
-    return render_frames(scene, traj.x[k - 1 :: k], spheres, boxes)
+    out, ok = _simulate_and_render(scene, params, with_mask)
+    return _nan_unless(ok, out)
+
+
+def simulate_and_render_checked(scene, params=None, *, with_mask: bool = False):
+    """(video, finite): `simulate_and_render` plus a () bool flag, usable under jit and vmap,
+    that is False when the cloth (or a body) became non-finite or blew up; the video is then NaN.
+    With with_mask: ((video, masks), finite).
+    """
+    out, ok = _simulate_and_render(scene, params, with_mask)
+    return _nan_unless(ok, out), ok
 
 
 def diagnose(scene, params=None) -> str | None:
@@ -247,27 +555,27 @@ def diagnose(scene, params=None) -> str | None:
     non-finite loss). Returns None when every stage is finite, else a message such as
     "physics: non-finite cloth state from frame 7 of 15 (...)".
     """
-    import numpy as np
-
     from diffcloth.physics.rollout import ADVICE
 
-    scene = apply_params(scene, params)
     for name, value in (params or {}).items():
         if not np.all(np.isfinite(np.asarray(value))):
             return f"parameters: {name} = {np.asarray(value).tolist()} is not finite"
+    try:
+        scene = apply_params(scene, params)
+    except ValueError as err:
+        return f"parameters: {err}"
     traj, bodies = jax.jit(simulate_all)(scene)
-    ok = np.isfinite(np.asarray(traj.x)).reshape(scene.num_frames, -1).all(axis=1)
-    ok &= np.isfinite(np.asarray(traj.v)).reshape(scene.num_frames, -1).all(axis=1)
+    ok = np.asarray(physics.frames_ok(scene.net, traj, scene.sim, scene.state))
     for b in bodies:
         ok &= np.isfinite(np.asarray(b.position)).all(axis=1)
     if not ok.all():
         first = int(np.argmin(ok))
         return (
-            f"physics: non-finite cloth or body state from frame {first} of {scene.num_frames} "
+            f"physics: non-finite or blown-up cloth or body state from frame {first} of "
+            f"{scene.num_frames} "
             f"({ADVICE})"
         )
-    k = scene.frame_stride
-    xs = traj.x[k - 1 :: k]
+    xs, spheres = rendered_states(scene, traj, bodies)
     surf = jax.jit(
         jax.vmap(lambda x: surface.tessellate(x, scene.level, scene.basis, flip=scene.flip))
     )(xs)
@@ -278,13 +586,10 @@ def diagnose(scene, params=None) -> str | None:
                 f"surface: non-finite {field} in rendered frame {int(np.argmin(good))} "
                 "(degenerate control net?)"
             )
-    spheres = frame_spheres(scene, bodies)
-    if spheres is not None:
-        spheres = Sphere(spheres.center[k - 1 :: k], spheres.radius)
-    boxes = frame_boxes(bodies)
-    if boxes is not None:
-        boxes = jax.tree.map(lambda a: a[k - 1 :: k], boxes)
-    video = np.asarray(jax.jit(render_frames)(scene, xs, spheres, boxes))
+    boxes = rendered_boxes(scene, bodies)
+    video = np.asarray(
+        jax.jit(lambda sc, x, sp, bx: render_frames(sc, x, sp, boxes=bx))(scene, xs, spheres, boxes)
+    )
     good = np.isfinite(video).reshape(video.shape[0], video.shape[1], -1).all(axis=2)
     if not good.all():
         cam, frame = np.unravel_index(int(np.argmin(good)), good.shape)

@@ -4,12 +4,14 @@
                      target=target_video, fitted=fitted_video)
 
 writes to the folder:
-  result.json  {"params": {NAME: {"true": .., "initial": .., "fitted": .., "relative_error": ..}},
-                "loss": .., "iterations": .., "wall_s": ..}   ("true" and "relative_error" only
+  result.json  {"status": converged | stalled | max_steps | nonfinite | interrupted | stopped,
+                "message": .., "params": {NAME: {"true": .., "initial": .., "fitted": ..,
+                "relative_error": ..}}, "loss": .. (null if not finite), "iterations": ..,
+                "wall_s": ..}   ("true" and "relative_error" only
                 when the truth is known; array parameters are lists)
   loss.png     loss per step (log scale)
   params.png   every parameter against step, with the true value
-  compare.gif  target | fit | |difference| per frame (when both videos are given)
+  compare.gif  target | fit | |difference| per frame (when both videos are given), sRGB-encoded
   report.md    the table, the pictures and any extra sections
   metrics.jsonl  one JSON line per step: step, loss, params, grad_norm, wall_s
   environment.json  versions, backend, devices, x64 (`diffcloth.runtime.environment`)
@@ -70,9 +72,12 @@ def fit_summary(result, truth: Mapping | None = None, initial: Mapping | None = 
         if name in truth:
             entry["relative_error"] = relative_error(fitted, truth[name])
         params[name] = entry
+    loss = float(result.loss)
     return {
+        "status": str(getattr(result, "status", "unknown")),
+        "message": str(getattr(result, "message", "")),
         "params": params,
-        "loss": float(result.loss),
+        "loss": loss if np.isfinite(loss) else None,
         "iterations": int(result.iterations),
         "wall_s": float(result.wall_s),
     }
@@ -104,7 +109,8 @@ def _table(summary: dict) -> str:
 
 
 def write_metrics(path, history) -> Path:
-    """The fit history as JSON lines, one per evaluation: step, loss, params, grad_norm, wall_s."""
+    """The fit history as JSON lines, one per evaluation: step, loss, params, grad_norm, wall_s
+    (strict JSON: non-finite numbers are null)."""
     import json
 
     lines = []
@@ -112,11 +118,12 @@ def write_metrics(path, history) -> Path:
         row = {
             "step": k,
             "loss": float(history.loss[k]),
-            "params": {n: to_jsonable(np.asarray(v[k])) for n, v in history.params.items()},
+            "params": {n: np.asarray(v[k]) for n, v in history.params.items()},
             "grad_norm": {n: float(v[k]) for n, v in history.grad_norm.items()},
             "wall_s": float(history.wall_s[k]),
         }
-        lines.append(json.dumps(row, allow_nan=True))
+        # strict JSON: a non-finite loss or gradient norm is written as null, never NaN
+        lines.append(json.dumps(to_jsonable(row), allow_nan=False))
     path = Path(path)
     path.write_text("\n".join(lines) + ("\n" if lines else ""))
     return path
@@ -136,6 +143,7 @@ def write_fit_report(
     extra_sections: Mapping[str, str] | Sequence[str] | None = None,
     title: str = "Fit report",
     plots: bool = True,
+    colorspace: str = "srgb",
 ) -> dict[str, Path]:
     """Write result.json, loss.png, params.png, compare.gif and report.md into `out_dir`.
 
@@ -150,6 +158,8 @@ def write_fit_report(
         identifiability.json).
       extra_sections: {heading: markdown} or a list of markdown blocks appended to report.md.
       plots: draw loss.png and params.png (needs matplotlib).
+      colorspace: "srgb" (default): target and fitted are linear RGB (as rendered) and compare.gif
+        is sRGB-encoded for viewing; "linear": they are written as given (already encoded).
     Returns:
       {"result", "metrics", "environment", "report", "loss", "params", "compare",
       "identifiability"}: the paths written.
@@ -170,9 +180,11 @@ def write_fit_report(
     if target is not None and fitted is not None:
         frames = side_by_side(target, fitted, gain=gain)
         if frames.ndim == 3:
-            paths["compare"] = save_png(out / "compare.png", frames)
+            paths["compare"] = save_png(out / "compare.png", frames, colorspace=colorspace)
         else:
-            paths["compare"] = save_video(out / "compare.gif", frames, fps=fps)
+            paths["compare"] = save_video(
+                out / "compare.gif", frames, fps=fps, colorspace=colorspace
+            )
     if identifiability is not None:
         from diffcloth.fit.identifiability import format_identifiability
 
@@ -183,7 +195,7 @@ def write_fit_report(
     md = [f"# {title}", ""]
     md.append(
         f"Status: **{getattr(result, 'status', '?')}** ({getattr(result, 'message', '')}). "
-        f"Loss {summary['loss']:.4g} after {summary['iterations']} iterations in "
+        f"Loss {_fmt(summary['loss'])} after {summary['iterations']} iterations in "
         f"{summary['wall_s']:.1f} s."
     )
     md += ["", _table(summary), ""]
@@ -191,7 +203,21 @@ def write_fit_report(
         md += ["## Convergence", "", "![loss](loss.png)", "", "![parameters](params.png)", ""]
     if "compare" in paths:
         name = paths["compare"].name
-        md += ["## Target | fit | difference", "", f"![compare]({name})", ""]
+        enc = "sRGB-encoded for display" if colorspace == "srgb" else "values as given"
+        md += [
+            "## Target | fit | difference",
+            "",
+            f"![compare]({name})",
+            "",
+            f"Images are {enc}; the fit itself compares linear RGB.",
+            "",
+        ]
+    md += [
+        "3D viewer: [viewer.html](viewer.html), a recording that opens offline; DIR being this "
+        "folder, write it with `diffcloth view DIR --export DIR/viewer.html`, or browse live with "
+        "`diffcloth view DIR` (needs the `view` extra).",
+        "",
+    ]
     if identifiability is not None:
         md += ["## Identifiability", "", format_identifiability(identifiability), ""]
     if extra_sections:
@@ -227,7 +253,7 @@ def results_row(experiment: str, summary: Mapping, report_link: str | None = Non
         "experiment": experiment,
         "parameters": ", ".join(summary["params"]),
         "max relative error": f"{100 * max(errors):.3g} %" if errors else "-",
-        "loss": f"{summary['loss']:.3g}",
+        "loss": "-" if summary["loss"] is None else f"{summary['loss']:.3g}",
         "iterations": str(summary["iterations"]),
         "wall (s)": f"{summary['wall_s']:.1f}",
         "report": f"[report]({report_link})" if report_link else "-",

@@ -69,7 +69,7 @@ def run_experiment(name: str, config_path, *, smoke: bool = False, title: str | 
                    extra_sections=None) -> dict:
     """Fit one config into results/<name>/ (results/smoke/<name>/ for smoke) and add its row."""
     summary = run_fit_config(config_path, out_dir(name, smoke), smoke=smoke, progress=not smoke,
-                             title=title, extra_sections=extra_sections)
+                             title=title, extra_sections=extra_sections, overwrite=True)
     add_row(name, summary, smoke)
     return summary
 

@@ -6,6 +6,8 @@ The cloth is the seed's 13 x 10 control net dropped onto a sphere with diffcloth
 procedurally draped net if the physics stage is unavailable), tessellated with
 diffcloth.surface.tessellate, pushed out of the sphere per vertex, and rendered with
 diffcloth.render.render.render. A second sphere beside the cloth shows up in the reflection modes.
+Both lights cast soft shadows (diffcloth.render.shadows): the cloth and the spheres shadow each
+other and the ground plane under them, in every mode.
 Output: results/gallery/gallery.png (+ gallery.json with the timing of each mode).
 """
 
@@ -21,15 +23,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffcloth.io import linear_to_srgb, save_png, to_uint8
 from diffcloth.render import lights as Lm
 from diffcloth.render import textures as T
 from diffcloth.render.camera import make_camera
-from diffcloth.render.render import render
+from diffcloth.render.render import frame_shadow_maps, render
 from diffcloth.render.shade import MODES
-from diffcloth.shapes import make_sphere
+from diffcloth.shapes import make_plane, make_sphere
 from diffcloth.surface import push_out_of_spheres, tessellate
 
 SPHERE_CENTER, SPHERE_RADIUS = (0.0, 0.0, 0.0), 0.3
+GROUND = -0.3  # height of the ground plane (the big sphere rests on it)
 
 
 def procedural_drape(rows=10, cols=13, size=(1.2, 0.9)):
@@ -102,14 +106,25 @@ def main(out: str = "results/gallery", *, smoke: bool = False) -> pathlib.Path:
         ambient=(0.12, 0.12, 0.14),
         directional=[((0.3, 1.0, 0.6), (1.0, 0.97, 0.9), 0.9)],
         point=[((-1.0, 1.2, 1.0), (0.4, 0.5, 0.7), 0.8)],
+        shadows=True,
+        softness=[1.5, 3.0],
         dtype=jnp.float32,
     )
+    ground = make_plane((0.0, 1.0, 0.0), GROUND, dtype=jnp.float32)
+    tiles, timing = [], {}
     app = Lm.make_appearance(sphere_color=(0.75, 0.72, 0.6), dtype=jnp.float32)
     tex = T.default_textures(
         size=32 if smoke else 128, threads=4 if smoke else 16, dtype=jnp.float32
     )
     fn = jax.jit(render, static_argnames=("shading",))
-    tiles, timing = [], {}
+    map_size = 64 if smoke else 512
+    # the shadow maps do not depend on the mode: built once, shared by every mode's render
+    t0 = time.perf_counter()
+    maps = jax.jit(frame_shadow_maps, static_argnames=("size",))(
+        surf, lights, spheres=spheres, size=map_size
+    )
+    jax.block_until_ready(maps)
+    timing["shadow_maps"] = round(time.perf_counter() - t0, 3)
     for mode in MODES:
         t0 = time.perf_counter()
         img = fn(
@@ -121,24 +136,25 @@ def main(out: str = "results/gallery", *, smoke: bool = False) -> pathlib.Path:
             spheres=spheres,
             textures=tex,
             background=(0.16, 0.17, 0.2),
+            planes=ground,
+            shadow_maps=maps,
         )
         img = np.asarray(jax.block_until_ready(img))
         timing[mode] = round(time.perf_counter() - t0, 3)
-        rgb = (np.clip(img[..., :3], 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)  # display gamma
+        print(json.dumps({"mode": mode, "seconds": timing[mode]}), flush=True)
+        rgb = to_uint8(linear_to_srgb(img[..., :3]))  # sRGB-encoded, for people
         tiles.append(label(rgb, mode))
     rows = [np.concatenate(tiles[i : i + 5], axis=1) for i in range(0, len(tiles), 5)]
     sheet = np.concatenate(rows, axis=0)
     out_dir = pathlib.Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    import imageio.v3 as iio
-
-    path = out_dir / "gallery.png"
-    iio.imwrite(path, sheet)
+    path = save_png(out_dir / "gallery.png", sheet, colorspace="srgb")  # uint8: marked sRGB
     meta = {
         "modes": list(MODES),
         "cloth": source,
         "size": size,
         "level": level,
+        "shadows": f"both lights, softness 1.5 / 3.0 degrees; ground plane y = {GROUND:.2f}",
         "seconds_incl_compile": timing,
     }
     (out_dir / "gallery.json").write_text(json.dumps(meta, indent=1))

@@ -28,7 +28,7 @@ from _common import add_row, cli, out_dir  # noqa: E402
 from diffcloth import config as cfg  # noqa: E402
 from diffcloth import fit as dcfit  # noqa: E402
 from diffcloth import pipeline, report, scene  # noqa: E402
-from diffcloth.experiment import parse_fit, smoke_config  # noqa: E402
+from diffcloth.experiment import smoke_config  # noqa: E402
 from diffcloth.io import save_json  # noqa: E402
 from diffcloth.plots import plot_error_vs_evals  # noqa: E402
 
@@ -80,7 +80,7 @@ def run_cmaes(loss, x0_raw: dict, budget: int, sigma0: float = 0.5, seed: int = 
 def main(config_path=None, *, smoke: bool = False) -> dict:
     config_path = Path(config_path or Path(__file__).resolve().parents[1] / CONFIG)
     config = cfg.load_config(config_path)
-    settings = parse_fit(config.sections, config_path.parent)
+    settings = config.fit
     budget = settings.steps
     if smoke:
         config = smoke_config(config)

@@ -274,7 +274,6 @@ def main(out_dir=None, *, smoke: bool = False, steps: int = 120, lm_steps: int =
     first = [int(np.argmax(per_frame[:, i] > 1e-3 * per_frame[:, i].max())) for i in range(2)]
     vals = _vec(result.params)
 
-    display = lambda v: np.clip(np.asarray(v), 0, 1) ** (1 / 2.2)  # noqa: E731
     total = time.perf_counter() - t0
     adam_err = "; ".join(
         f"{k} {adam['params'][k]['fitted']:.5g} ({100 * adam['params'][k]['relative_error']:.2g} %)"
@@ -322,8 +321,8 @@ def main(out_dir=None, *, smoke: bool = False, steps: int = 120, lm_steps: int =
         result,
         truth=TRUTH,
         initial=INITIAL,
-        target=display(target),
-        fitted=display(fitted),
+        target=np.asarray(target),  # linear; the report sRGB-encodes compare.gif
+        fitted=np.asarray(fitted),
         fps=15.0,
         gain=4.0,
         identifiability=ident,

@@ -32,19 +32,57 @@ def test_shipped_configs_load_and_build():
     assert isinstance(hang, Config) and hang == load_config(ROOT / "configs" / "hang.toml")
 
 
-def test_later_sections_pass_through_unvalidated():
+def test_every_section_is_validated_up_front():
+    """Render, body and fit sections are parsed into typed settings by load_config, not later."""
     cfg = parse_config(
         {
-            "camera": {"eye": [0, 1, 3], "anything": "goes"},
-            "bodies": [{"shape": "sphere"}],
+            "camera": {"eye": [0, 1, 3]},
+            "bodies": [{"shape": "sphere", "radius": 0.1, "mass": 0.2}],
             "fit": {"free": ["stretch"]},
-            "output": {"video": True},
+            "truth": {"stretch": 50.0},
         }
     )
-    assert cfg.sections["camera"]["anything"] == "goes"
-    assert cfg.sections["bodies"][0]["shape"] == "sphere"
+    assert cfg.cameras[0].eye == (0.0, 1.0, 3.0) and cfg.render.width == 64
+    assert cfg.bodies.entries[0]["shape"] == "sphere" and cfg.bodies.two_way
+    assert cfg.fit.free == ("stretch",) and float(cfg.fit.truth["stretch"]) == 50.0
     with pytest.raises(TypeError):
         cfg.sections["new"] = 1
+    bad = [
+        ({"camera": {"eye": [0, 1, 3], "anything": "goes"}}, r"\[cameras #0\] unknown key"),
+        ({"camera": {"eye": [0, 1, 0], "target": [0, 1, 0]}}, r"eye .* must differ from target"),
+        ({"bodies": [{"shape": "sphere"}]}, r"\[\[bodies\]\] .*'mass' is required"),
+        ({"output": {"video": True}}, r"unknown key 'output'"),
+        ({"render": {"width": 0}}, r"\[render\] width = 0 is out of range"),
+        ({"render": {"flip": 1}}, r"\[render\] flip = 1 must be true or false"),
+        ({"lights": {"directional": [{"direction": [0, 0, 0]}]}}, r"direction .* must be non-zero"),
+        ({"appearance": {"difuse": [1, 0, 0]}}, r"\[appearance\] unknown key 'difuse'"),
+        ({"appearance": {"diffuse": "red"}}, r"\[appearance\] diffuse = 'red' must be a number"),
+        ({"truth": {"stretch": 1.0}}, r"\[truth\] needs a \[fit\] section"),
+        ({"fit": {"free": ["strech"]}, "truth": {"stretch": 1.0}}, r"\[fit\] free"),
+        ({"coupling": {"two_way": "yes"}}, r"\[coupling\] two_way = 'yes' must be true or false"),
+    ]
+    for data, match in bad:
+        with pytest.raises(ConfigError, match=match):
+            parse_config(data)
+
+
+def test_docs_config_md_lists_every_key_of_the_schema():
+    """docs/config.md documents every section and key of `diffcloth.config.schema()`."""
+    from diffcloth.config import schema
+
+    text = (ROOT / "docs" / "config.md").read_text()
+    headings = [line for line in text.splitlines() if line.startswith("## ")]
+    for section, keys in schema().items():
+        top = section.split(".")[0]
+        heading = next((h for h in headings if f"[{top}]" in h or f"[[{top}]]" in h), None)
+        assert heading is not None, f"docs/config.md has no heading for [{section}]"
+        start = text.index(heading)
+        nxt = [text.index(h) for h in headings if text.index(h) > start]
+        part = text[start : min(nxt) if nxt else len(text)]
+        missing = [k for k in keys if f"| {k} " not in part and f"| {section}.{k} " not in part]
+        assert not missing, (
+            f"docs/config.md section {heading!r} lacks keys {missing} of [{section}]"
+        )
 
 
 @pytest.mark.parametrize(

@@ -57,7 +57,8 @@ def test_result_json_exact_format(tmp_path):
         fitted=np.full((3, 8, 8, 3), 0.1),
     )
     data = json.loads((tmp_path / "result.json").read_text())
-    assert list(data) == ["params", "loss", "iterations", "wall_s"]
+    assert list(data) == ["status", "message", "params", "loss", "iterations", "wall_s"]
+    assert data["status"] == res.status
     assert data["params"]["stretch"] == {
         "true": 800.0,
         "initial": 500.0,

@@ -156,5 +156,5 @@ def test_diagnose_names_the_stage_that_broke(small_scene):
     assert msg.startswith("parameters: bend")
     # far too stiff for the explicit step: the physics blows up, diagnose says where
     msg = pipeline.diagnose(small_scene, {"stretch": 1e9})
-    assert msg.startswith("physics: non-finite cloth or body state from frame "), msg
+    assert msg.startswith("physics: non-finite or blown-up cloth or body state from frame "), msg
     assert "num_substeps" in msg

@@ -37,10 +37,8 @@ import dataclasses
 import glob
 import json
 import os
-import platform
 import re
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -77,6 +75,10 @@ LLVM_PATH = _pick_llvm()
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # benchmarks/_timing.py
+from _timing import meta as _meta_line  # noqa: E402
+from _timing import timed  # noqa: E402
+
 from diffcloth import physics  # noqa: E402
 from diffcloth.config import build_physics, load_config  # noqa: E402
 from diffcloth.render import render  # noqa: E402
@@ -86,13 +88,7 @@ from diffcloth.surface import tessellate  # noqa: E402
 
 
 def _median(fn, repeats):
-    fn()  # warm-up (compile)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return timed(fn, repeats=repeats).median
 
 
 def draped_surface(seconds: float = 1.0):
@@ -311,16 +307,8 @@ def main(argv=None):
     parser.add_argument("--save-images", help="folder for render_images.npz (both images)")
     args = parser.parse_args(argv)
     repeats = 3 if args.quick else args.repeats
-    meta = dict(
-        bench="meta",
-        script="mitsuba_render",
-        machine=platform.processor() or platform.machine(),
-        python=sys.version.split()[0],
-        jax=jax.__version__,
-        mitsuba=mi.__version__,
-        drjit=dr.__version__,
-        libllvm=LLVM_PATH,
-        backend=jax.default_backend(),
+    meta = _meta_line(
+        "mitsuba_render", mitsuba=mi.__version__, drjit=dr.__version__, libllvm=LLVM_PATH
     )
     lines = [meta]
     print(json.dumps(meta), flush=True)

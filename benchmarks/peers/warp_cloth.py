@@ -29,14 +29,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
-import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # benchmarks/_timing.py
+from _timing import meta as _meta_line  # noqa: E402
+from _timing import timed  # noqa: E402
 
 from diffcloth import physics
 from diffcloth.physics.net import bend_triplets, spring_list
@@ -222,13 +225,7 @@ class WarpCloth:
 
 
 def _median(fn, repeats):
-    fn()  # warm-up (compile)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return timed(fn, repeats=repeats).median
 
 
 def scene(rows, cols):
@@ -321,17 +318,7 @@ def main(argv=None):
     wp.init()
     sizes = [(10, 13), (32, 32)] if args.quick else [(10, 13), (32, 32), (64, 64), (128, 128)]
     repeats = args.repeats or (3 if args.quick else 5)
-    meta = dict(
-        bench="meta",
-        script="warp_cloth",
-        machine=platform.processor() or platform.machine(),
-        python=sys.version.split()[0],
-        jax=jax.__version__,
-        warp=wp.__version__,
-        backend=jax.default_backend(),
-        params=list(PARAMS),
-        substep_s=H,
-    )
+    meta = _meta_line("warp_cloth", warp=wp.__version__, params=list(PARAMS), substep_s=H)
     lines = [meta]
     print(json.dumps(meta), flush=True)
     for rows, cols in sizes:

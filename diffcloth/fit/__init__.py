@@ -13,6 +13,15 @@ from diffcloth.fit.constraints import (
     to_physical,
     to_raw,
 )
+from diffcloth.fit.footage import (
+    FootageLoss,
+    FootageTargets,
+    cloth_mask_by_color,
+    footage_residuals,
+    prepare_targets,
+    scene_loss,
+    scene_residuals,
+)
 from diffcloth.fit.identifiability import Identifiability, format_identifiability, identifiability
 from diffcloth.fit.loop import (
     FitResult,
@@ -22,7 +31,11 @@ from diffcloth.fit.loop import (
     fit_multistart,
     fit_params,
     load_checkpoint,
+    pack_tree,
+    save_checkpoint,
+    unpack_tree,
 )
+from diffcloth.fit.interrupt import catch_interrupts
 from diffcloth.fit.scene_fit import (
     LOSSES,
     default_constraint,
@@ -42,8 +55,33 @@ from diffcloth.fit.losses import (
     squared_error,
     validate_targets,
 )
+from diffcloth.fit.masks import (
+    distance_transform_loss,
+    iou_loss,
+    mask_loss,
+    mask_residuals,
+    soft_iou,
+    target_distances,
+)
+from diffcloth.fit.robust import ROBUST_KINDS, robust_residuals, robust_rho
 
 __all__ = [
+    "FootageLoss",
+    "FootageTargets",
+    "ROBUST_KINDS",
+    "cloth_mask_by_color",
+    "distance_transform_loss",
+    "footage_residuals",
+    "iou_loss",
+    "mask_loss",
+    "mask_residuals",
+    "prepare_targets",
+    "robust_residuals",
+    "robust_rho",
+    "scene_loss",
+    "scene_residuals",
+    "soft_iou",
+    "target_distances",
     "LOSSES",
     "default_constraint",
     "fit",
@@ -70,6 +108,10 @@ __all__ = [
     "identifiability",
     "image_loss",
     "load_checkpoint",
+    "pack_tree",
+    "save_checkpoint",
+    "unpack_tree",
+    "catch_interrupts",
     "make_constraint",
     "make_constraints",
     "pyramid_loss",

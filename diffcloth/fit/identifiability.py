@@ -30,6 +30,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from diffcloth.fit.constraints import make_constraints, to_physical, to_raw
+from diffcloth.physics.forces import autodiff_forces
 
 __all__ = ["Identifiability", "format_identifiability", "identifiability"]
 
@@ -156,7 +157,10 @@ def identifiability(
         def fn(z):
             return jnp.ravel(residual_fn(unravel(z)))
 
-    jac = np.asarray(jax.jit(jax.jacfwd(fn))(flat), dtype=float)  # (m, n), one compile
+    # forward mode: trace the physics with JAX's own force derivatives (the hand-written VJP of
+    # the symplectic step is reverse-mode only)
+    with autodiff_forces():
+        jac = np.asarray(jax.jit(jax.jacfwd(fn))(flat), dtype=float)  # (m, n), one compile
     if not np.all(np.isfinite(jac)):
         raise ValueError("the Jacobian of residual_fn at params is not finite")
     fisher = jac.T @ jac / noise_sigma**2

@@ -19,6 +19,7 @@ import functools
 import json
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -30,6 +31,7 @@ import numpy as np
 import optax
 
 from diffcloth.fit.constraints import make_constraints, to_physical, to_raw
+from diffcloth.io.media import to_jsonable
 
 __all__ = [
     "FitResult",
@@ -39,11 +41,17 @@ __all__ = [
     "fit_multistart",
     "fit_params",
     "load_checkpoint",
+    "pack_tree",
+    "save_checkpoint",
+    "unpack_tree",
 ]
 
 log = logging.getLogger("diffcloth.fit")
 
-STATUSES = ("max_steps", "converged", "stalled", "stopped", "nonfinite")
+STATUSES = ("max_steps", "converged", "stalled", "stopped", "nonfinite", "interrupted")
+
+#: version of the checkpoint layout written by `save_checkpoint`.
+CHECKPOINT_FORMAT = 2
 
 
 @dataclasses.dataclass
@@ -79,7 +87,9 @@ class FitResult:
     params/raw/loss: the evaluated parameters with the lowest finite loss (physical, raw).
     initial: the physical starting values. iterations: optimizer updates applied.
     status: "max_steps", "converged" (loss <= loss_tol), "stalled" (no relative improvement > tol
-    for `patience` steps), "stopped" (callback) or "nonfinite". message: a one-line explanation.
+    for `patience` steps), "stopped" (callback), "nonfinite" or "interrupted" (the `stop` event was
+    set, e.g. by Ctrl-C; a checkpoint to resume from was written when checkpoint_path was given).
+    message: a one-line explanation.
     last_finite: physical parameters of the last evaluation with a finite loss and gradient.
     """
 
@@ -203,37 +213,74 @@ def _check_init(init: Mapping[str, Any], what: str = "init") -> dict[str, jax.Ar
     return out
 
 
-def _save_checkpoint(path, *, step, raw, params, best, last_finite, opt_state, loss, status):
+def pack_tree(prefix: str, tree) -> dict[str, np.ndarray]:
+    """A pytree's leaves as {prefix/0000: array, ...} (tree_leaves order), for `save_checkpoint`."""
+    return {
+        f"{prefix}/{i:04d}": np.asarray(leaf)
+        for i, leaf in enumerate(jax.tree_util.tree_leaves(tree))
+    }
+
+
+def unpack_tree(leaves: Sequence[np.ndarray], like):
+    """Rebuild a pytree shaped like `like` from its saved leaves (see `pack_tree`); checks that the
+    number, shapes and dtypes of the leaves match (a checkpoint of another optimizer fails here)."""
+    ref, treedef = jax.tree_util.tree_flatten(like)
+    if len(ref) != len(leaves):
+        raise ValueError(
+            f"checkpoint: the saved solver state has {len(leaves)} leaves, this optimizer's has "
+            f"{len(ref)} (was it written by another optimizer or parameter set?)"
+        )
+    out = []
+    for i, (a, b) in enumerate(zip(ref, leaves, strict=True)):
+        if np.shape(a) != np.shape(b):
+            raise ValueError(
+                f"checkpoint: solver state leaf {i} has shape {np.shape(b)}, expected {np.shape(a)}"
+            )
+        out.append(jnp.asarray(b, dtype=jnp.asarray(a).dtype))
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def save_checkpoint(path, arrays: Mapping[str, Any], meta: Mapping[str, Any]) -> str:
+    """Write a fit checkpoint: `path` (.npz, the arrays) and a .json sidecar (`meta`).
+
+    The layout any fit loop can use (keys are "group/name"): "step" (evaluations done),
+    "raw/", "params/", "best/", "last_finite/" (name -> value of the best start), "state/raw/"
+    (the current raw values, with the start axis for a multistart fit), "opt_state/" (the
+    optimizer or solver state pytree, `pack_tree`), "history/" (loss, params/NAME, grad_norm/NAME,
+    wall) and "tracker/" (the loop's stopping state). Written to a temporary file and renamed, so a
+    checkpoint on disk is always complete.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {f"raw/{k}": np.asarray(v) for k, v in raw.items()}
-    arrays.update({f"params/{k}": np.asarray(v) for k, v in params.items()})
-    arrays.update({f"best/{k}": np.asarray(v) for k, v in best.items()})
-    arrays.update({f"last_finite/{k}": np.asarray(v) for k, v in last_finite.items()})
-    for i, leaf in enumerate(jax.tree_util.tree_leaves(opt_state)):
-        arrays[f"opt_state/{i:04d}"] = np.asarray(leaf)
-    arrays["step"] = np.asarray(step)
-    with open(path, "wb") as fh:
-        np.savez(fh, **arrays)
-    meta = {
-        "step": int(step),
-        "loss": float(loss) if math.isfinite(loss) else None,
-        "status": status,
-        "best": {k: np.asarray(v).tolist() for k, v in best.items()},
-        "last_finite": {k: np.asarray(v).tolist() for k, v in last_finite.items()},
-    }
-    path.with_suffix(".json").write_text(json.dumps(meta, indent=2) + "\n")
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **{k: np.asarray(v) for k, v in arrays.items()})
+    os.replace(tmp, path)
+    side = path.with_suffix(".json")
+    side_tmp = side.with_name(side.name + ".tmp")
+    side_tmp.write_text(json.dumps(to_jsonable(dict(meta)), indent=2, allow_nan=False) + "\n")
+    os.replace(side_tmp, side)
     return str(path)
 
 
 def load_checkpoint(path) -> dict[str, Any]:
-    """Read a fit checkpoint (.npz).
+    """Read a fit checkpoint (.npz, and its .json sidecar when present).
 
-    Returns {"step", "raw", "params", "best", "last_finite", "opt_state"}: the dict entries map
-    names to arrays; opt_state is the list of optimizer-state leaves (tree_leaves order).
+    Returns {"step", "raw", "params", "best", "last_finite", "opt_state", "state", "history",
+    "tracker", "meta"}: dict entries map names to arrays; opt_state is the list of optimizer-state
+    leaves (tree_leaves order, rebuild with `unpack_tree`); "history" holds "loss", "wall" and
+    the dicts "params" and "grad_norm"; "meta" the sidecar's JSON (statuses, messages, names).
     """
-    out: dict[str, Any] = {"raw": {}, "params": {}, "best": {}, "last_finite": {}, "opt_state": []}
-    with np.load(path) as z:
+    path = Path(path)
+    out: dict[str, Any] = {
+        "raw": {}, "params": {}, "best": {}, "last_finite": {}, "opt_state": [], "state": {},
+        "history": {"params": {}, "grad_norm": {}}, "tracker": {}, "meta": {},
+    }  # fmt: skip
+    try:
+        z = np.load(path)
+    except (OSError, ValueError) as err:
+        raise ValueError(f"cannot read checkpoint {str(path)!r}: {err}") from None
+    with z:
         for key in sorted(z.files):
             if key == "step":
                 out["step"] = int(z[key])
@@ -241,8 +288,16 @@ def load_checkpoint(path) -> dict[str, Any]:
             group, name = key.split("/", 1)
             if group == "opt_state":
                 out["opt_state"].append(z[key])
+            elif group in ("state", "tracker", "history") and "/" in name:
+                sub, leaf = name.split("/", 1)
+                out[group].setdefault(sub, {})[leaf] = z[key]
+            elif group in ("state", "tracker", "history"):
+                out[group][name] = z[key]
             else:
                 out[group][name] = z[key]
+    side = path.with_suffix(".json")
+    if side.exists():
+        out["meta"] = json.loads(side.read_text())
     return out
 
 
@@ -316,6 +371,56 @@ class _Tracker:
                 self.best_raw[i] = {n: raw[n][i] for n in self.names}
             self.last_finite_raw[i] = {n: raw[n][i] for n in self.names}
             self.last_finite_phys[i] = {n: phys[n][i] for n in self.names}
+
+    _FIELDS = ("active", "stop_step", "best_loss", "best_step", "ref_loss", "stall", "updates")
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The whole state as "history/..." and "tracker/..." arrays (see `save_checkpoint`)."""
+        out: dict[str, np.ndarray] = {f"tracker/{f}": np.asarray(getattr(self, f)) for f in
+                                      self._FIELDS}  # fmt: skip
+        out["history/loss"] = np.asarray(self.loss, float).reshape(len(self.loss), self.n)
+        out["history/wall"] = np.asarray(self.wall, float)
+        for n in self.names:
+            if self.params:
+                out[f"history/params/{n}"] = np.stack([np.asarray(p[n]) for p in self.params])
+                out[f"history/grad_norm/{n}"] = np.stack(
+                    [np.asarray(g[n]) for g in self.grad_norm]
+                )
+            for key, rows in (("best_raw", self.best_raw), ("last_raw", self.last_finite_raw),
+                              ("last_phys", self.last_finite_phys)):  # fmt: skip
+                ref = next((r[n] for r in rows if r is not None), None)
+                if ref is None:
+                    continue
+                out[f"tracker/{key}/{n}"] = np.stack(
+                    [np.asarray(r[n]) if r is not None else np.zeros_like(ref) for r in rows]
+                )
+        for key, rows in (("best_raw", self.best_raw), ("last_raw", self.last_finite_raw)):
+            out[f"tracker/has_{key}"] = np.array([r is not None for r in rows])
+        return out
+
+    def restore(self, ck: Mapping[str, Any]) -> None:
+        """Load the state written by `to_arrays` (a `load_checkpoint` dict)."""
+        t, h = ck["tracker"], ck["history"]
+        for f in self._FIELDS:
+            setattr(self, f, np.array(t[f]))
+        meta = ck.get("meta", {})
+        self.status = list(meta.get("tracker_status", self.status))
+        self.message = list(meta.get("tracker_message", self.message))
+        K = int(np.shape(h["loss"])[0])
+        self.loss = [np.asarray(h["loss"][k]) for k in range(K)]
+        self.wall = [float(w) for w in h["wall"]]
+        self.params = [{n: h["params"][n][k] for n in self.names} for k in range(K)]
+        self.grad_norm = [{n: h["grad_norm"][n][k] for n in self.names} for k in range(K)]
+
+        def rows(key, has):
+            flags = t.get(f"has_{has}", np.zeros(self.n, bool))
+            return [
+                {n: t[key][n][i] for n in self.names} if flags[i] else None for i in range(self.n)
+            ]
+
+        self.best_raw = rows("best_raw", "best_raw")
+        self.last_finite_raw = rows("last_raw", "last_raw")
+        self.last_finite_phys = rows("last_phys", "last_raw")
 
     def update_stopping(self, k, loss, finite, grad_finite, path_msg):
         """After evaluation k of the active starts (whose update was applied if finite)."""
@@ -414,6 +519,8 @@ def _run(
     desc,
     loss_args,
     devices=None,
+    resume=None,
+    stop=None,
 ):
     _check_stopping(steps, tol, patience, loss_tol)
     names = list(init_phys)
@@ -421,8 +528,11 @@ def _run(
     cons_items = tuple(sorted(cons.items()))
     opt = _resolve_optimizer(optimizer, learning_rate, clip_norm)
     raw = {k: _as_float(v) for k, v in to_raw(init_phys, cons).items()}
+    tr = _Tracker(n, names, tol, patience, loss_tol)
     if batched:
         opt_state = jax.vmap(opt.init)(raw)
+        if resume is not None:
+            raw, opt_state = _restore(resume, raw, opt_state, names, n, steps, tr)
         if devices is not None:
             raw, opt_state, loss_args = _spread(devices, n, raw, opt_state, loss_args)
 
@@ -430,6 +540,8 @@ def _run(
             return _step_batched(loss_fn, cons_items, opt, r, s, jnp.asarray(a), loss_args)
     else:
         opt_state = opt.init(raw)
+        if resume is not None:
+            raw, opt_state = _restore(resume, raw, opt_state, names, n, steps, tr)
 
         def step(r, s, a):
             return _step(loss_fn, cons_items, opt, r, s, jnp.asarray(a[0]), loss_args)
@@ -438,38 +550,53 @@ def _run(
         x = np.asarray(x)
         return x if batched else x[None]
 
-    tr = _Tracker(n, names, tol, patience, loss_tol)
     path_msg = (
         str(checkpoint_path)
         if checkpoint_path is not None
         else "FitResult.last_finite (pass checkpoint_path= to also write them to disk)"
     )
-    t0 = time.perf_counter()
+    k0 = len(tr.loss)
+    t0 = time.perf_counter() - (tr.wall[-1] if tr.wall else 0.0)
     bar = _progress_bar(steps, progress, desc)
+    bar.update(min(k0, steps))
 
-    def save(k, r, s):
+    def save(r, s):
         if checkpoint_path is None:
             return
         i = int(np.argmin(np.where(np.isfinite(tr.best_loss), tr.best_loss, np.inf)))
         best = tr.best_raw[i] or {n: host(r[n])[i] for n in names}
         last = tr.last_finite_raw[i] or best
-        _save_checkpoint(
-            checkpoint_path,
-            step=k,
-            raw={n: host(r[n])[i] for n in names},
-            params={
-                n: np.asarray(v)
-                for n, v in to_physical({n: host(r[n])[i] for n in names}, cons).items()
-            },
-            best={n: np.asarray(v) for n, v in to_physical(best, cons).items()},
-            last_finite={n: np.asarray(v) for n, v in to_physical(last, cons).items()},
-            opt_state=s,
-            loss=float(tr.best_loss[i]),
-            status=tr.status[i],
+        arrays = {f"raw/{n}": host(r[n])[i] for n in names}
+        arrays.update({f"params/{n}": np.asarray(v) for n, v in to_physical(
+            {n: host(r[n])[i] for n in names}, cons).items()})  # fmt: skip
+        arrays.update({f"best/{n}": np.asarray(v) for n, v in to_physical(best, cons).items()})
+        arrays.update(
+            {f"last_finite/{n}": np.asarray(v) for n, v in to_physical(last, cons).items()}
         )
+        arrays.update({f"state/raw/{n}": np.asarray(r[n]) for n in names})
+        arrays.update(pack_tree("opt_state", s))
+        arrays.update(tr.to_arrays())
+        arrays["step"] = np.asarray(len(tr.loss))
+        loss_i = float(tr.best_loss[i])
+        meta = {
+            "format": CHECKPOINT_FORMAT,
+            "step": len(tr.loss),
+            "names": names,
+            "starts": n,
+            "loss": loss_i if math.isfinite(loss_i) else None,
+            "status": tr.status[i],
+            "best": {k: np.asarray(v) for k, v in to_physical(best, cons).items()},
+            "last_finite": {k: np.asarray(v) for k, v in to_physical(last, cons).items()},
+            "tracker_status": tr.status,
+            "tracker_message": tr.message,
+        }
+        save_checkpoint(checkpoint_path, arrays, meta)
 
+    interrupted = False
     try:
-        for k in range(steps + 1):
+        for k in range(k0, steps + 1):
+            if not tr.active.any():
+                break
             final = k == steps
             act = tr.active & (not final)
             raw_before = raw
@@ -510,13 +637,22 @@ def _run(
                         tr.stop_step[i] = k + 1
                     tr.active[:] = False
             if checkpoint_every and (k + 1) % checkpoint_every == 0:
-                save(k + 1, raw, opt_state)
-            if not tr.active.any():
+                save(raw, opt_state)
+            if stop is not None and stop.is_set() and tr.active.any():
+                save(raw, opt_state)  # before marking: a resumed fit carries on from here
+                where = f"checkpoint {checkpoint_path}" if checkpoint_path else "no checkpoint"
+                for i in np.flatnonzero(tr.active):
+                    tr.status[i] = "interrupted"
+                    tr.message[i] = f"interrupted after step {k} ({where})"
+                    tr.stop_step[i] = k + 1
+                tr.active[:] = False
+                interrupted = True
                 break
     finally:
         bar.close()
     wall = time.perf_counter() - t0
-    save(int(tr.updates.max()) if n else 0, raw, opt_state)
+    if not interrupted:
+        save(raw, opt_state)
     results = [
         tr.result(
             i,
@@ -532,6 +668,40 @@ def _run(
         if r.status == "nonfinite":
             log.warning(r.message)
     return results, wall
+
+
+def _as_checkpoint(resume):
+    if resume is None or isinstance(resume, Mapping):
+        return resume
+    return load_checkpoint(resume)
+
+
+def _restore(ck, raw, opt_state, names, n, steps, tr):
+    """Raw values, optimizer state and tracker from a `load_checkpoint` dict (for resume=)."""
+    meta = ck.get("meta", {})
+    saved = meta.get("names")
+    if saved is not None and list(saved) != list(names):
+        raise ValueError(f"resume: the checkpoint fits {saved}, this fit {names}")
+    if meta.get("starts", n) != n:
+        raise ValueError(f"resume: the checkpoint has {meta.get('starts')} starts, this fit {n}")
+    if "raw" not in ck.get("state", {}) or not ck.get("tracker"):
+        raise ValueError("resume: the checkpoint has no loop state (written by an older version?)")
+    done = int(ck["step"])
+    if done > steps + 1:
+        raise ValueError(
+            f"resume: the checkpoint is at step {done - 1}, beyond steps={steps}; raise steps"
+        )
+    new_raw = {}
+    for k in names:
+        a = np.asarray(ck["state"]["raw"][k])
+        if a.shape != tuple(raw[k].shape):
+            raise ValueError(
+                f"resume: checkpoint value of {k!r} has shape {a.shape}, expected {raw[k].shape}"
+            )
+        new_raw[k] = jnp.asarray(a, raw[k].dtype)
+    opt_state = unpack_tree(ck["opt_state"], opt_state)
+    tr.restore(ck)
+    return new_raw, opt_state
 
 
 def _spread(devices, n, raw, opt_state, loss_args):
@@ -583,6 +753,8 @@ def fit_params(
     checkpoint_path: str | Path | None = None,
     checkpoint_every: int | None = None,
     loss_args: tuple = (),
+    resume: str | Path | Mapping | None = None,
+    stop: Any = None,
 ) -> FitResult:
     """Minimise `loss_fn(physical_params)` over the named parameters with optax.
 
@@ -609,6 +781,12 @@ def fit_params(
       loss_args: extra arguments, `loss_fn(params, *loss_args)`: pytrees of arrays such as the
         target video, passed to the jitted step as arguments (not baked in as constants, so a
         new target of the same shape does not recompile).
+      resume: a checkpoint (path or `load_checkpoint` dict) written by a fit with the same
+        parameters, optimizer and loss: the fit continues from its step with its optimizer state
+        and history, and ends exactly as an uninterrupted fit of `steps` steps would.
+      stop: an object with `is_set()` (e.g. `threading.Event`, see `diffcloth.fit.interrupt`),
+        checked after every step: once set, the checkpoint is written and the fit returns with
+        status "interrupted".
     Returns:
       FitResult. On a non-finite loss or gradient at step k the fit stops, status "nonfinite",
       message "non-finite loss/grad at step k (...); last finite params saved to ...", and
@@ -634,6 +812,8 @@ def fit_params(
         checkpoint_every=checkpoint_every,
         loss_args=tuple(loss_args),
         desc="fit",
+        resume=_as_checkpoint(resume),
+        stop=stop,
     )
     return results[0]
 
@@ -683,6 +863,8 @@ def fit_multistart(
     checkpoint_path: str | Path | None = None,
     checkpoint_every: int | None = None,
     loss_args: tuple = (),
+    resume: str | Path | Mapping | None = None,
+    stop: Any = None,
     devices: int | Any | None = None,
 ) -> MultiStartResult:
     """Fit several initial guesses at once (`jax.vmap` over the raw parameters); keep the best.
@@ -722,6 +904,8 @@ def fit_multistart(
         loss_args=tuple(loss_args),
         desc=f"fit x{n}",
         devices=devices,
+        resume=_as_checkpoint(resume),
+        stop=stop,
     )
     losses = np.array([r.loss if np.isfinite(r.loss) else np.inf for r in results])
     return MultiStartResult(results=results, best_index=int(np.argmin(losses)), wall_s=wall)

@@ -44,6 +44,12 @@ def default_constraint(name: str):
         return Bounded(0.0, 1.0)
     if name == "bump_strength":
         return Bounded(0.0, 10.0)
+    if name in ("light_direction", "point_light_position"):
+        return Identity()
+    if name in ("camera_rotation", "camera_translation", "background"):
+        from diffcloth.pipeline import NUISANCE_RANGES
+
+        return Bounded(*NUISANCE_RANGES[name])
     return Positive()
 
 
@@ -147,7 +153,7 @@ def fit(
     if targets.ndim == 4 and len(scene.cameras) == 1:
         targets = targets[None]
     targets = validate_targets(targets, scene.video_shape, name="targets")
-    targets = jnp.asarray(targets, scene.material.stretch.dtype)
+    targets = jnp.asarray(targets, scene.material.density.dtype)
     init = {
         n: np.asarray(init[n] if init and n in init else pipeline.param_value(scene, n))
         for n in free

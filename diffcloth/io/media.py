@@ -1,9 +1,21 @@
 """Images and videos (PNG, GIF, MP4) and result JSON.
 
 Images are float (H, W, C) in [0, 1] (C = 1, 3 or 4; (H, W) is grey); a video is (T, H, W, C).
-Writing clips to [0, 1] and rounds to 8 bits; reading returns float32 in [0, 1]
-(uint8 / 255). MP4 needs the optional `imageio-ffmpeg` (`pip install "diffcloth[video]"`);
-without it `save_video` writes a GIF next to the requested path and logs why.
+Writing clips to [0, 1] and rounds to 8 bits (or 16 bits: `save_png(..., bits=16)`); reading
+returns float32 in [0, 1] (uint8 / 255, uint16 / 65535, exactly: 16-bit colour PNGs keep all bits).
+MP4 needs the optional `imageio-ffmpeg` (`pip install "diffcloth[video]"`); without it
+`save_video` writes a GIF next to the requested path and logs why.
+
+Colour: diffcloth computes in linear RGB. Files can hold linear values or sRGB-encoded ones:
+  - `colorspace="srgb"`: for people. Writing encodes the linear image with the sRGB transfer
+    function (and marks the PNG with an sRGB chunk); reading decodes such a file back to linear.
+    The CLI's render output, fit reports (compare.gif) and the gallery are written this way.
+  - `colorspace="linear"`: data for programs. Values are written and read as they are (PNGs get
+    a gAMA 1.0 chunk), so a linear image round-trips exactly up to quantisation.
+  - reading with `colorspace="auto"` (the default of `load_image`): the file's own sRGB/gAMA
+    chunk decides; without one, 8-bit files are taken as sRGB (what image libraries and cameras
+    assume) and 16-bit files as linear.
+Alpha is never colour-converted.
 
 Example:
     >>> import numpy as np, tempfile, os
@@ -25,6 +37,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "linear_to_srgb",
     "load_image",
     "load_image_sequence",
     "load_json",
@@ -34,11 +47,49 @@ __all__ = [
     "save_png",
     "save_video",
     "side_by_side",
+    "srgb_to_linear",
     "to_jsonable",
+    "read_image_raw",
+    "to_uint16",
     "to_uint8",
 ]
 
 log = logging.getLogger("diffcloth.io")
+
+#: file colour encodings: "srgb" (for people) and "linear" (data); reading also takes "auto".
+COLORSPACES = ("srgb", "linear")
+
+
+def linear_to_srgb(x) -> np.ndarray:
+    """Linear RGB in [0, 1] -> sRGB-encoded values (IEC 61966-2-1 transfer function); clips."""
+    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1.0 / 2.4) - 0.055)
+
+
+def srgb_to_linear(x) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] -> linear RGB (the inverse of `linear_to_srgb`)."""
+    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def _check_colorspace(colorspace, allowed=COLORSPACES) -> str:
+    if colorspace not in allowed:
+        raise ValueError(f"colorspace={colorspace!r}; allowed: {', '.join(map(repr, allowed))}")
+    return colorspace
+
+
+def _encode(image: np.ndarray, colorspace: str) -> np.ndarray:
+    """Linear float image -> values to store; alpha (4th channel) untouched."""
+    if colorspace == "linear" or image.dtype in (np.uint8, np.uint16, np.bool_):
+        return image
+    a = np.asarray(image, np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(
+            f"image of shape {a.shape} contains {int((~np.isfinite(a)).sum())} NaN/inf"
+        )
+    if a.ndim >= 3 and a.shape[-1] == 4:
+        return np.concatenate([linear_to_srgb(a[..., :3]), np.clip(a[..., 3:], 0, 1)], -1)
+    return linear_to_srgb(a)
 
 
 def to_uint8(image) -> np.ndarray:
@@ -80,35 +131,98 @@ def _check_video(video, name: str = "video") -> np.ndarray:
     return a
 
 
-def save_png(path, image) -> Path:
-    """Write one image as PNG (8 bit). Creates parent folders. Returns the path."""
-    import imageio.v3 as iio
+def to_uint16(image) -> np.ndarray:
+    """Float [0, 1] -> uint16 (clip, * 65535, round); uint16 passes through; NaN/inf raise."""
+    a = np.asarray(image)
+    if a.dtype == np.uint16:
+        return a
+    if a.dtype == np.uint8:
+        return a.astype(np.uint16) * 257
+    a = a.astype(np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(
+            f"image of shape {a.shape} contains {int((~np.isfinite(a)).sum())} NaN/inf"
+        )
+    return np.round(np.clip(a, 0.0, 1.0) * 65535.0).astype(np.uint16)
 
+
+def save_png(path, image, *, colorspace: str = "linear", bits: int = 8) -> Path:
+    """Write one image as PNG. Creates parent folders. Returns the path.
+
+    Args:
+      image: (H, W), (H, W, 1|3|4) float in [0, 1] (clipped), or uint8/uint16 (taken as already
+        encoded in `colorspace` and written as they are).
+      colorspace: "linear" (default): values are stored as they are, for programs (gAMA 1.0
+        chunk). "srgb": `image` is linear RGB and is sRGB-encoded, for people (sRGB chunk).
+      bits: 8 or 16 bits per channel.
+    """
+    from diffcloth.io.png import write_png
+
+    _check_colorspace(colorspace)
+    if bits not in (8, 16):
+        raise ValueError(f"bits={bits!r}; allowed: 8, 16")
     path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise ValueError(f"save_png: path {str(path)!r} must end in .png")
+    img = _encode(_check_image(image), colorspace)
+    data = to_uint16(img) if bits == 16 else to_uint8(img)
     path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, to_uint8(_check_image(image)), extension=".png")
-    return path
+    return write_png(path, data, srgb_chunk=colorspace == "srgb")
 
 
-def load_image(path) -> np.ndarray:
-    """Read an image file as float32 (H, W, C) in [0, 1] (16-bit PNGs / 65535; grey -> C = 1)."""
+def read_image_raw(path) -> tuple[np.ndarray, str | None]:
+    """(stored values as uint8/uint16/float array (H, W, C), the file's own colour encoding:
+    "srgb", "linear" or None when the file does not say). PNGs are read exactly
+    (`diffcloth.io.png`), other formats with imageio."""
+    path = Path(path)
+    if path.suffix.lower() == ".png":
+        from diffcloth.io.png import read_png
+
+        got = read_png(path)
+        if got is not None:
+            img, info = got
+            tag = None
+            if info["srgb"]:
+                tag = "srgb"
+            elif info["gamma"] is not None:
+                tag = "linear" if abs(info["gamma"] - 1.0) < 0.01 else "srgb"
+            return img, tag
     import imageio.v3 as iio
 
     a = np.asarray(iio.imread(path))
     if a.ndim == 2:
         a = a[..., None]
+    return a, None
+
+
+def load_image(path, *, colorspace: str = "auto") -> np.ndarray:
+    """Read an image file as float32 (H, W, C) in [0, 1], linear unless colorspace says otherwise.
+
+    uint8 / 255 and uint16 / 65535 exactly (16-bit colour PNGs keep all 16 bits); grey -> C = 1.
+    colorspace: how the file's values are encoded: "srgb" (decoded to linear), "linear" (kept as
+    they are), or "auto": the file's sRGB/gAMA chunk, else sRGB for 8-bit files and linear for
+    16-bit and float files. Alpha is never converted.
+    """
+    _check_colorspace(colorspace, COLORSPACES + ("auto",))
+    a, tag = read_image_raw(path)
+    bits = {np.dtype(np.uint8): 8, np.dtype(np.uint16): 16}.get(a.dtype)
     if a.dtype == np.uint16:
-        return a.astype(np.float32) / 65535.0
-    if a.dtype == np.uint8:
-        return a.astype(np.float32) / 255.0
-    if a.dtype == np.bool_:
-        return a.astype(np.float32)
-    return a.astype(np.float32)
+        img = a.astype(np.float64) / 65535.0
+    elif a.dtype == np.uint8:
+        img = a.astype(np.float64) / 255.0
+    else:
+        img = a.astype(np.float64)
+    if colorspace == "auto":
+        colorspace = tag or ("srgb" if bits == 8 else "linear")
+    if colorspace == "srgb":
+        c = min(img.shape[-1], 3) if img.shape[-1] != 2 else 1  # grey+alpha: convert grey only
+        img[..., :c] = srgb_to_linear(img[..., :c])
+    return img.astype(np.float32)
 
 
-def _rgb_frames(video) -> np.ndarray:
+def _rgb_frames(video, colorspace: str = "linear") -> np.ndarray:
     """(T, H, W[, C]) -> uint8 (T, H, W, 3): grey repeated, alpha composited over black."""
-    a = _check_video(video)
+    a = _encode(_check_video(video), colorspace)
     if a.ndim == 3:
         a = np.repeat(np.asarray(a)[..., None], 3, axis=-1)
     a = to_uint8(a)
@@ -126,7 +240,9 @@ def _has_ffmpeg() -> bool:
     return True
 
 
-def save_video(path, video, fps: float = 20.0, *, loop: int = 0) -> Path:
+def save_video(
+    path, video, fps: float = 20.0, *, loop: int = 0, colorspace: str = "linear"
+) -> Path:
     """Write a video (T, H, W, C) as GIF (.gif) or MP4 (.mp4, needs imageio-ffmpeg).
 
     Args:
@@ -134,6 +250,8 @@ def save_video(path, video, fps: float = 20.0, *, loop: int = 0) -> Path:
       video: (T, H, W), (T, H, W, 1|3|4) float in [0, 1] or uint8; alpha is composited over black.
       fps: frames per second (> 0).
       loop: GIF repeat count (0 = forever).
+      colorspace: "linear" (default): values stored as they are; "srgb": `video` is linear RGB
+        and is sRGB-encoded (for people: GIF and MP4 players assume sRGB).
     Returns:
       The path written: for .mp4 without imageio-ffmpeg, the same path with suffix .gif (and a
       logged warning saying so).
@@ -146,7 +264,8 @@ def save_video(path, video, fps: float = 20.0, *, loop: int = 0) -> Path:
     suffix = path.suffix.lower()
     if suffix not in (".gif", ".mp4"):
         raise ValueError(f"save_video: path {str(path)!r} must end in .gif or .mp4")
-    frames = _rgb_frames(video)
+    _check_colorspace(colorspace)
+    frames = _rgb_frames(video, colorspace)
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".mp4":
         if _has_ffmpeg():
@@ -250,10 +369,11 @@ def _natural_key(p: Path):
     return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", p.name)]
 
 
-def load_image_sequence(folder, pattern: str = "*.png") -> np.ndarray:
+def load_image_sequence(folder, pattern: str = "*.png", *, colorspace: str = "auto") -> np.ndarray:
     """Read a folder of frames (natural order: frame_2 before frame_10) into float32 (T, H, W, C).
 
-    Raises ValueError when the folder is missing or empty, or the frames differ in size.
+    colorspace: as for `load_image`. Raises ValueError when the folder is missing or empty, or
+    the frames differ in size or channels (naming the odd files).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -261,7 +381,7 @@ def load_image_sequence(folder, pattern: str = "*.png") -> np.ndarray:
     files = sorted((p for p in folder.glob(pattern) if p.is_file()), key=_natural_key)
     if not files:
         raise ValueError(f"no files matching {pattern!r} in {str(folder)!r}")
-    frames = [load_image(p) for p in files]
+    frames = [load_image(p, colorspace=colorspace) for p in files]
     shapes = [f.shape for f in frames]
     common = max(set(shapes), key=shapes.count)
     odd = [f"{p.name}: {s}" for p, s in zip(files, shapes, strict=True) if s != common]
@@ -274,8 +394,14 @@ def load_image_sequence(folder, pattern: str = "*.png") -> np.ndarray:
     return np.stack(frames)
 
 
-def save_image_sequence(folder, video, prefix: str = "frame_") -> list[Path]:
-    """Write a video (T, H, W, C) as PNGs folder/prefix0000.png, ...; returns the paths."""
+def save_image_sequence(
+    folder, video, prefix: str = "frame_", *, colorspace: str = "linear", bits: int = 8
+) -> list[Path]:
+    """Write a video (T, H, W, C) as PNGs folder/prefix0000.png, ...; returns the paths.
+    colorspace, bits: as for `save_png`."""
     v = _check_video(video)
     folder = Path(folder)
-    return [save_png(folder / f"{prefix}{i:04d}.png", frame) for i, frame in enumerate(v)]
+    return [
+        save_png(folder / f"{prefix}{i:04d}.png", frame, colorspace=colorspace, bits=bits)
+        for i, frame in enumerate(v)
+    ]

@@ -35,12 +35,21 @@ from diffcloth.physics.material import (
     to_raw,
     validate_material,
 )
+from diffcloth.physics.massspring import (
+    MASS_SPRING_FIELDS,
+    MassSpring,
+    make_mass_spring,
+    validate_mass_spring,
+)
 from diffcloth.physics.net import Net, grid_net, make_net
 from diffcloth.physics.rollout import (
     StabilityWarning,
     UnstableSimulationError,
     advance,
+    blowup_bound,
     check_stability,
+    first_bad_frame,
+    frames_ok,
     rollout,
     simulate,
     stable_substep,
@@ -80,6 +89,10 @@ __all__ = [
     "ClothState",
     "Contacts",
     "MATERIAL_FIELDS",
+    "MASS_SPRING_FIELDS",
+    "MassSpring",
+    "make_mass_spring",
+    "validate_mass_spring",
     "Material",
     "Net",
     "STEPS",
@@ -107,6 +120,9 @@ __all__ = [
     "node_mass",
     "potential_energy",
     "rest_state",
+    "blowup_bound",
+    "first_bad_frame",
+    "frames_ok",
     "rollout",
     "simulate",
     "spring_forces",

@@ -3,7 +3,9 @@
 After every substep each free point that lies inside a collider is projected onto its surface, the
 approaching normal component of its velocity (relative to the collider) is removed, and the tangential
 part is reduced by friction * (removed normal speed), Coulomb style. So no control point ends a step
-inside a collider. A point exactly at a sphere's centre is pushed out along +y.
+inside a collider. A point exactly at a sphere's centre is pushed out along +y. A non-finite point
+(a blown-up simulation) is never "inside": it is left non-finite, so the blow-up stays visible
+instead of being painted onto the collider by the fallback direction.
 """
 
 from __future__ import annotations
@@ -109,7 +111,7 @@ def collide(
         c = colliders.spheres.center[k][:, None, None] + vel * sphere_shift
         r = colliders.spheres.radius[k] + margin
         dist, nrm = _direction_planar(x - c)
-        inside = (dist < r) & free
+        inside = (dist < r) & free & _finite_points(x)
         x = jnp.where(inside[None], c + r * nrm, x)
         v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
         v_new = _contact_velocity(v_in, vel, nrm, inside, friction)
@@ -119,7 +121,7 @@ def collide(
     for k in range(colliders.num_planes):
         nrm = colliders.planes.normal[k][:, None, None]
         s = _dot(x, nrm) - colliders.planes.offset[k] - margin
-        inside = (s < 0) & free
+        inside = (s < 0) & free & _finite_points(x)
         x = jnp.where(inside[None], x - s[None] * nrm, x)
         v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
         v_new = _contact_velocity(v_in, jnp.zeros_like(nrm), nrm, inside, friction)
@@ -129,6 +131,11 @@ def collide(
     si = jnp.stack(sphere_imp) if sphere_imp else zeros
     pi = jnp.stack(plane_imp) if plane_imp else zeros
     return x, v, si, pi
+
+
+def _finite_points(x):
+    """(rows, cols) bool: the planar point (3, rows, cols) is finite in every coordinate."""
+    return jnp.all(jnp.isfinite(x), axis=0)
 
 
 def collide_points(x, v, colliders, friction, margin=0.0, *, mass=None, free=None):

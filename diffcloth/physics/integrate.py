@@ -6,7 +6,7 @@ bodies, the pipeline) can call inside its own `lax.scan`:
     step(net, sim, material, state, colliders=None, *, pin_target=None) -> ClothState
 
 - symplectic: semi-implicit (symplectic) Euler, v += h f(x, v) / m; x += h v. Conditionally stable:
-  h below about 2 sqrt(m_min / k_max) (see `rollout.stable_substep`).
+  h below the limit of `rollout.stable_substep` (docs/physics.md, "Stability estimate").
 - implicit: backward Euler in the velocity, m (v' - v) = h f(x + h v', v'), solved by Newton with
   matrix-free conjugate gradients on a positive semi-definite Newton matrix. Its gradient is taken
   implicitly (`jax.lax.custom_root`, BiCGSTAB on the exact linearisation), not through the iterations.
@@ -29,6 +29,7 @@ from diffcloth.physics.forces import (
     from_planar,
     node_mass,
     to_planar,
+    total_forces_fn,
 )
 from diffcloth.physics.material import Material
 from diffcloth.physics.net import Net
@@ -185,6 +186,11 @@ def _implicit_substep(net, sim, material, x, v, mass, free, h, pin_v):
     return x + h * v1, v1
 
 
+def _displacement_rule(sim) -> bool:
+    rule = getattr(sim, "friction_rule", "auto")
+    return rule == "displacement" or (rule == "auto" and sim.integrator == "implicit")
+
+
 def step_with_contacts(
     net: Net,
     sim: SimSettings,
@@ -207,6 +213,11 @@ def step_with_contacts(
     Returns:
       (state at the end of the frame, Contacts).
     """
+    if sim.integrator == "implicit" and hasattr(material, "total_forces_planar"):
+        raise ValueError(
+            "integrator: 'implicit' supports the continuum Material only; "
+            f"{type(material).__name__} runs with integrator = 'symplectic'"
+        )
     num = sim.num_substeps
     h = sim.dt / num
     mass = node_mass(net, material)
@@ -237,7 +248,7 @@ def step_with_contacts(
                 material.friction,
                 sim.collision_margin,
                 t,
-                x_prev=x if sim.integrator == "implicit" else None,
+                x_prev=x if _displacement_rule(sim) else None,
                 h=h,
             )
         return x1, v1, dsi, dpi
@@ -246,9 +257,11 @@ def step_with_contacts(
     zeros_pi = jnp.zeros((n_p, 3), dtype)
     if sim.integrator == "symplectic":
         safe_mass = jnp.where(free, mass, 1.0)[None]
+        # material-dependent stencil frames built once per frame, outside the substep loop
+        forces = total_forces_fn(net, material, sim.gravity, sim.wind)
 
         def kick(x, v):
-            return v + h * _total_forces(net, material, x, v, sim.gravity, sim.wind) / safe_mass
+            return v + h * forces(x, v) / safe_mass
 
         # Kick-drift order with the drift first in the loop body: iteration s drifts substep s - 1
         # (x += h v, pins, colliders) and then kicks substep s. Each loop output then depends on the

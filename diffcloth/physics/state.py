@@ -10,6 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 INTEGRATORS = ("symplectic", "implicit")
+#: contact velocity rules: "auto" is "displacement" for the implicit integrator, else "coulomb"
+FRICTION_RULES = ("auto", "coulomb", "displacement")
 
 
 @jax.tree_util.register_dataclass
@@ -39,6 +41,11 @@ class SimSettings:
         Newton + conjugate gradients).
       newton_iters, cg_iters: static, iterations of the implicit solver.
       cg_tol: static, relative tolerance of the CG and of the gradient's linear solve.
+      friction_rule: static, contact velocity rule (FRICTION_RULES): "coulomb" removes the
+        approaching normal velocity and shrinks the tangential one by friction * that speed;
+        "displacement" first resets a projected point's velocity to its displacement over the
+        substep (position-based); "auto" picks "displacement" for implicit, "coulomb" otherwise.
+        `collision_margin` is the contact thickness.
     """
 
     dt: jax.Array
@@ -50,6 +57,7 @@ class SimSettings:
     newton_iters: int = dataclasses.field(default=3, metadata={"static": True})
     cg_iters: int = dataclasses.field(default=200, metadata={"static": True})
     cg_tol: float = dataclasses.field(default=1e-5, metadata={"static": True})
+    friction_rule: str = dataclasses.field(default="auto", metadata={"static": True})
 
     @property
     def h(self):
@@ -83,6 +91,7 @@ def make_sim(
     newton_iters: int = 3,
     cg_iters: int = 200,
     cg_tol: float = 1e-5,
+    friction_rule: str = "auto",
     dtype=None,
 ) -> SimSettings:
     """Validated constructor for SimSettings (see its attributes).
@@ -101,6 +110,8 @@ def make_sim(
     margin = float(collision_margin)
     if not math.isfinite(margin) or margin < 0:
         raise ValueError(f"collision_margin: must be in [0, inf) m, got {collision_margin!r}")
+    if friction_rule not in FRICTION_RULES:
+        raise ValueError(f"friction_rule: must be one of {FRICTION_RULES}, got {friction_rule!r}")
     if not (0 < cg_tol < 1):
         raise ValueError(f"cg_tol: must be in (0, 1), got {cg_tol!r}")
     dtype = dtype or jnp.zeros(()).dtype
@@ -114,6 +125,7 @@ def make_sim(
         newton_iters=int(newton_iters),
         cg_iters=int(cg_iters),
         cg_tol=float(cg_tol),
+        friction_rule=friction_rule,
     )
 
 

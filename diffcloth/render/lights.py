@@ -31,6 +31,12 @@ class Lights:
       point_color: (np, 3) colour of each point light.
       point_intensity: (np,) scalar intensity; radiance = color * intensity / (1 + attenuation d^2).
       point_attenuation: (np,) quadratic distance attenuation in 1/m^2 (0 = none).
+      direction_softness: (nd,) angular radius of each directional light in degrees (> 0): the
+        width of its soft shadow edges (see `diffcloth.render.shadows`). None: DEFAULT_SOFTNESS.
+      point_softness: (np,) the same for each point light (angular radius seen from the lit
+        point, in degrees).
+      shadows: static tuple of nl = nd + np bools (directional lights first): which lights cast
+        shadows. () (the default) means none does; images are then exactly the unshadowed ones.
     """
 
     ambient: jax.Array
@@ -41,7 +47,32 @@ class Lights:
     point_color: jax.Array
     point_intensity: jax.Array
     point_attenuation: jax.Array
+    direction_softness: jax.Array | None = None
+    point_softness: jax.Array | None = None
+    shadows: tuple = dataclasses.field(default=(), metadata={"static": True})
 
+    @property
+    def casts_shadows(self) -> bool:
+        """True when at least one light casts shadows (static)."""
+        return any(self.shadows)
+
+    def softness_degrees(self) -> tuple[jax.Array, jax.Array]:
+        """((nd,), (np,)) angular radii in degrees (defaults filled in)."""
+        nd, npt = self.direction.shape[0], self.point_position.shape[0]
+        dtype = self.direction.dtype
+        ds = self.direction_softness
+        ps = self.point_softness
+        if ds is None:
+            ds = jnp.full((nd,), DEFAULT_SOFTNESS, dtype)
+        if ps is None:
+            ps = jnp.full((npt,), DEFAULT_SOFTNESS, dtype)
+        return ds, ps
+
+
+#: default angular radius of a light (degrees) when shadows are on: soft edges a few pixels wide
+DEFAULT_SOFTNESS = 2.0
+#: allowed softness range in degrees (0 would be a hard, non-differentiable shadow edge)
+SOFTNESS_RANGE = (0.05, 30.0)
 
 Light = Lights  # public alias used by the top-level API (`dc.Light`)
 
@@ -56,6 +87,8 @@ def make_lights(
     ambient=(0.1, 0.1, 0.1),
     directional=(((0.3, 1.0, 0.6), (1.0, 1.0, 1.0), 1.0),),
     point=(),
+    shadows=False,
+    softness=DEFAULT_SOFTNESS,
     dtype=None,
 ) -> Lights:
     """Validated constructor.
@@ -65,6 +98,10 @@ def make_lights(
       directional: sequence of (direction toward light (3,), colour (3,), intensity) triples.
       point: sequence of (position (3,), colour (3,), intensity) or
         (position, colour, intensity, attenuation) tuples.
+      shadows: bool for every light, or a sequence of nd + np bools (directional lights first):
+        which lights cast shadows (default: none; images are then exactly the unshadowed ones).
+      softness: angular radius of the lights in degrees, SOFTNESS_RANGE: one value, or a sequence
+        of nd + np values; sets the width of the soft shadow edges.
       dtype: float dtype of the leaves (default: JAX's default float).
     Returns:
       Lights. Raises ValueError for non-finite values, zero directions or negative intensities.
@@ -112,6 +149,17 @@ def make_lights(
     def arr(x, shape):
         return jnp.asarray(np.asarray(x, np.float64).reshape(shape), dtype)
 
+    nd, nl = len(dirs), len(dirs) + len(pos)
+    flags = [shadows] * nl if isinstance(shadows, bool | np.bool_) else list(shadows)
+    if len(flags) != nl or not all(isinstance(f, bool | np.bool_) for f in flags):
+        raise ValueError(f"shadows must be a bool or {nl} bools (one per light), got {shadows!r}")
+    if np.ndim(softness) not in (0, 1) or (np.ndim(softness) == 1 and len(softness) != nl):
+        raise ValueError(f"softness must be one value or {nl} values, got {softness!r}")
+    soft = np.broadcast_to(np.asarray(softness, np.float64), (nl,))
+    lo, hi = SOFTNESS_RANGE
+    if not np.all(np.isfinite(soft)) or np.any((soft < lo) | (soft > hi)):
+        raise ValueError(f"softness must be in [{lo}, {hi}] degrees, got {soft.tolist()}")
+
     return Lights(
         ambient=arr(amb, (3,)),
         direction=arr(dirs, (-1, 3)),
@@ -121,6 +169,9 @@ def make_lights(
         point_color=arr(pcol, (-1, 3)),
         point_intensity=arr(pint, (-1,)),
         point_attenuation=arr(patt, (-1,)),
+        direction_softness=arr(soft[:nd], (-1,)),
+        point_softness=arr(soft[nd:], (-1,)),
+        shadows=tuple(bool(f) for f in flags) if any(flags) else (),
     )
 
 
@@ -213,6 +264,11 @@ _APPEARANCE_DEFAULTS = dict(
 
 _POSITIVE = ("shininess", "minnaert_k", "ior")
 _NONNEGATIVE = ("sphere_distance_falloff", "sphere_rim_power", "second_pass_alpha")
+
+
+def appearance_fields() -> tuple[str, ...]:
+    """Names of the `Appearance` fields, in order (the keys [appearance] allows)."""
+    return tuple(_APPEARANCE_DEFAULTS)
 
 
 def make_appearance(*, dtype=None, **values) -> Appearance:

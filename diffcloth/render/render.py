@@ -20,8 +20,13 @@ from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.rays import ray_sphere
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
+from diffcloth.render.shadows import ShadowMaps, shadow_visibility
+from diffcloth.render.shadows import shadow_maps as build_shadow_maps
 from diffcloth.render.textures import Textures
-from diffcloth.shapes import Sphere
+from diffcloth.shapes import Plane, Sphere
+
+#: default albedo of drawn ground planes (linear RGB)
+PLANE_COLOR = (0.6, 0.6, 0.6)
 
 
 @functools.lru_cache(maxsize=32)
@@ -60,7 +65,13 @@ def _face_normals(positions, faces, normals):
     return safe_normalize(jnp.where((side < 0)[:, None], -fn, fn))
 
 
-def _sphere_layer(camera: Camera, spheres: Sphere, lights: Lights, appearance: Appearance):
+def _sphere_layer(
+    camera: Camera,
+    spheres: Sphere,
+    lights: Lights,
+    appearance: Appearance,
+    shadows: ShadowMaps | None = None,
+):
     """Ray-cast spheres: premultiplied RGBA (H, W, 4) with antialiased rims, and view depth (H, W).
 
     Coverage of a pixel is clip((r - d) / footprint + 1/2, 0, 1) with d the distance from the
@@ -103,7 +114,8 @@ def _sphere_layer(camera: Camera, spheres: Sphere, lights: Lights, appearance: A
     depth = jnp.take_along_axis(depth, nearest, axis=0)[0]
     point = jnp.take_along_axis(point, nearest[..., None], axis=0)[0]
     normal = jnp.take_along_axis(normal, nearest[..., None], axis=0)[0]
-    diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance)
+    vis = shadow_visibility(shadows, point, normal)
+    diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance, vis)
     amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
     albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
     color = albedo * (amb + diffuse) + jnp.reshape(appearance.specular, (1, 1, 3)) * specular
@@ -145,6 +157,83 @@ def _with_boxes(surface, boxes: BoxPoses):
     return combined, nb.astype(jnp.int32)
 
 
+def _plane_layer(
+    camera: Camera,
+    planes: Plane,
+    lights: Lights,
+    appearance: Appearance,
+    color,
+    shadows: ShadowMaps | None = None,
+):
+    """Ray-cast planes (seen from their free side, up to the far plane): opaque Lambertian
+    RGBA (H, W, 4) (premultiplied; alpha 1 where a plane is hit) and view depth (H, W).
+
+    Colour = color * (appearance.ambient * ambient light + sum_l radiance_l max(N.L_l, 0) V_l),
+    V_l the shadow visibility; no specular (a matte ground).
+    """
+    origins, dirs = pixel_rays(camera)
+    pl = planes.batched()
+    big = jnp.asarray(1e10, origins.dtype)
+
+    def one(normal, offset):
+        n = jnp.reshape(normal, (1, 1, 3))
+        side = jnp.sum(origins * n, axis=-1) - offset  # > 0: eye on the free side
+        nd = jnp.sum(dirs * n, axis=-1)
+        t = safe_div_neg(side, nd)
+        point = origins + t[..., None] * dirs
+        _, depth = project(point, camera)
+        hit = (side > 0) & (nd < 0) & (depth < camera.far)
+        return jnp.where(hit, depth, big), point
+
+    depth, point = jax.vmap(one)(pl.normal, pl.offset)  # (npl, H, W, ...)
+    nearest = jnp.argmin(depth, axis=0)
+    depth = jnp.take_along_axis(depth, nearest[None], axis=0)[0]
+    point = jnp.take_along_axis(point, nearest[None, ..., None], axis=0)[0]
+    normal = pl.normal[nearest]
+    hit = depth < big
+    point = jnp.where(hit[..., None], point, 0.0)
+    vis = shadow_visibility(shadows, point, normal)
+    diffuse, _ = blinn_phong(normal, -dirs, point, lights, appearance, vis)
+    amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
+    rgb = jnp.reshape(jnp.asarray(color, point.dtype), (1, 1, 3)) * (amb + diffuse)
+    alpha = hit.astype(point.dtype)[..., None]
+    return jnp.concatenate([rgb * alpha, alpha], axis=-1), depth
+
+
+def safe_div_neg(side, nd):
+    """Ray parameter t = side / -nd of a plane hit; 0 where the ray is parallel."""
+    ok = nd < 0
+    return jnp.where(ok, side / jnp.where(ok, -nd, 1.0), 0.0)
+
+
+def _occluder_mesh(surface, occluders):
+    """(positions, faces, neighbors) of the cloth plus extra occluder triangles (boxes...)."""
+    pos, faces = surface.positions, jnp.asarray(surface.faces).astype(jnp.int32)
+    nbr = _grid_neighbors(surface)
+    if nbr is None:
+        nbr = edge_neighbors(faces)
+    if occluders is None:
+        return pos, faces, nbr
+    opos, ofaces = occluders[0], jnp.asarray(occluders[1]).astype(jnp.int32)
+    onbr = edge_neighbors(ofaces)
+    m, n = faces.shape[0], pos.shape[0]
+    return (
+        jnp.concatenate([pos, opos.astype(pos.dtype)], axis=0),
+        jnp.concatenate([faces, ofaces + n], axis=0),
+        jnp.concatenate([nbr, jnp.where(onbr >= 0, onbr + m, -1)], axis=0),
+    )
+
+
+def frame_shadow_maps(surface, lights: Lights, *, spheres=None, occluders=None, size: int = 256):
+    """Shadow data of one frame: the cloth `surface` (plus `occluders` triangles) as the mesh
+    occluder, `spheres` analytic; None when no light casts shadows (see `shadows.shadow_maps`)."""
+    if not lights.casts_shadows:
+        return None
+    return build_shadow_maps(
+        lights, mesh=_occluder_mesh(surface, occluders), spheres=spheres, size=size
+    )
+
+
 def surface_gbuffer(
     surface,
     camera: Camera,
@@ -155,9 +244,13 @@ def surface_gbuffer(
     two_sided: bool = True,
     cull_backfaces: bool = False,
     max_tiles: int | None = None,
+    shadows: ShadowMaps | None = None,
     boxes: BoxPoses | None = None,
 ):
     """Rasterize a Surface into the shader's per-pixel inputs.
+
+    shadows: optional `shadows.shadow_maps` output: fills `visibility` per pixel (and lights the
+    Gouraud vertices with per-vertex visibility).
 
     Returns:
       (ShadingBuffer, raster GBuffer (ids, depth, crossings for `antialias`), eye vectors (H, W, 3)
@@ -185,9 +278,10 @@ def surface_gbuffer(
             eye4 = jnp.concatenate([eye_position(camera), jnp.ones(1, pos.dtype)])
         else:
             eye4 = jnp.concatenate([eye_rays[0, 0], jnp.zeros(1, pos.dtype)])
-        attrs["color"] = light_vertices(pos, nrm, eye4, lights, appearance)
+        vvis = shadow_visibility(shadows, pos, nrm)
+        attrs["color"] = light_vertices(pos, nrm, eye4, lights, appearance, vvis)
         if two_sided:
-            attrs["color_back"] = light_vertices(pos, -nrm, eye4, lights, appearance)
+            attrs["color_back"] = light_vertices(pos, -nrm, eye4, lights, appearance, vvis)
     buf = rasterize_gbuffer(
         pos,
         faces,
@@ -223,6 +317,7 @@ def surface_gbuffer(
         mask=mask,
         face_normal=face_normal,
         color=color,
+        visibility=shadow_visibility(shadows, a["position"], normal),
     )
     return gb, buf, eye_rays
 
@@ -244,6 +339,12 @@ def render(
     cull_backfaces: bool = False,
     two_sided: bool = True,
     max_tiles: int | None = None,
+    planes: Plane | None = None,
+    plane_color=PLANE_COLOR,
+    occluders=None,
+    shadow_map_size: int = 256,
+    return_cloth_mask: bool = False,
+    shadow_maps: ShadowMaps | None = None,
 ):
     """Rasterize, shade and composite a cloth surface.
 
@@ -265,12 +366,37 @@ def render(
       antialiased: apply the rasterizer's silhouette antialiasing (gives edge gradients).
       two_sided: light the back side of the cloth with the flipped normal (cloth is thin).
       max_tiles: rasterizer window budget (see `raster.rasterize`).
+      planes: optional ground planes (e.g. the scene's plane colliders) drawn as opaque matte
+        surfaces (ray cast from their free side up to the camera's far plane), depth-composited
+        with the cloth and spheres; they receive shadows.
+      plane_color: (3,) linear albedo of the planes.
+      occluders: optional extra shadow-casting triangle mesh (positions (n, 3), faces (m, 3)),
+        e.g. box bodies; differentiable in the positions. (Cast only; drawing is the caller's.)
+      shadow_map_size: static shadow-map size in texels (used only by lights with shadows).
+      shadow_maps: optional precomputed `frame_shadow_maps(surface, lights, ...)` (shared by
+        several cameras of one frame); built here when None and a light casts shadows.
+      return_cloth_mask: also return the visible cloth coverage (H, W) in [0, 1]: the antialiased
+        cloth alpha (soft at silhouettes, so differentiable w.r.t. the geometry there) times the
+        part of each pixel not covered by a sphere or plane drawn in front. The image is unchanged.
+    Shadows: lights whose `shadows` flag is set (see `make_lights`) are occluded by the cloth
+      (plus `occluders`) through a shadow map and by `spheres` analytically, on the cloth, the
+      spheres and the planes (`diffcloth.render.shadows`). Without shadow-casting lights no
+      shadow code runs and the image is exactly the unshadowed one.
     Returns:
       (H, W, 4) image: linear RGB (not clipped) and alpha = coverage. With a background the RGB is
-      composited over it; the alpha channel still reports coverage of cloth and spheres.
+      composited over it; the alpha channel still reports coverage of cloth, spheres and planes.
+      With return_cloth_mask: (image, cloth_mask).
     """
     if shading not in MODES:
         raise ValueError(f"shading must be one of {MODES}, got {shading!r}")
+    maps = shadow_maps
+    if boxes is not None and occluders is None:
+        box_verts, _, box_faces = box_mesh(boxes)
+        occluders = (box_verts, box_faces)  # boxes cast shadows too
+    if maps is None and lights.casts_shadows:
+        maps = frame_shadow_maps(
+            surface, lights, spheres=spheres, occluders=occluders, size=shadow_map_size
+        )
     gb, buf, eye_rays = surface_gbuffer(
         surface,
         camera,
@@ -280,6 +406,7 @@ def render(
         two_sided=two_sided,
         cull_backfaces=cull_backfaces,
         max_tiles=max_tiles,
+        shadows=maps,
         boxes=boxes,
     )
     img = shade(
@@ -295,26 +422,50 @@ def render(
     if boxes is not None:
         # box pixels: the spheres' material (Blinn-Phong with sphere_color), flat face normals
         on_box = (buf.surface_id >= surface.faces.shape[0])[..., None]
-        diffuse, specular = blinn_phong(gb.normal, eye_rays, gb.position, lights, appearance)
+        diffuse, specular = blinn_phong(
+            gb.normal, eye_rays, gb.position, lights, appearance, gb.visibility
+        )
         amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
         albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
         spec = jnp.reshape(appearance.specular, (1, 1, 3))
         box_rgb = (albedo * (amb + diffuse) + spec * specular) * gb.mask[..., None]
         box_rgba = jnp.concatenate([box_rgb, gb.mask[..., None]], axis=-1).astype(img.dtype)
-        img = jnp.where(on_box, box_rgba, img)
+        cloth_alpha = jnp.where(on_box[..., 0], 0.0, img[..., 3])
+        img = jnp.concatenate([jnp.where(on_box, box_rgba, img), cloth_alpha[..., None]], -1)
     if antialiased:
         # computed once: fused into antialias's shifted neighbour reads, the shading (texture
         # gathers, bump maps) would be recomputed for each neighbour and channel (with the
         # materializations in shade: minnaert render 265 -> 46 ms at 256^2, benchmarks/shading.py)
         img = antialias(materialize(img), buf)
+    if boxes is not None:  # the extra channel: coverage of the cloth alone
+        img, cloth_mask = img[..., :4], img[..., 4]
+    else:
+        cloth_mask = img[..., 3]
     if spheres is not None and draw_spheres:
-        sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance)
+        sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)
         front = (sphere_depth < buf.depth * (1.0 - 1e-4))[..., None]
         over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
         under = img + (1.0 - img[..., 3:]) * sphere_rgba  # cloth over sphere
         img = jnp.where(front, over, under)
+        cloth_mask = jnp.where(front[..., 0], (1.0 - sphere_rgba[..., 3]) * cloth_mask, cloth_mask)
+        depth = jnp.minimum(buf.depth, sphere_depth)
+    else:
+        depth = buf.depth
+    if planes is not None:
+        plane_rgba, plane_depth = _plane_layer(
+            camera, planes, lights, appearance, plane_color, maps
+        )
+        front = (plane_depth < depth)[..., None]
+        cloth_mask = jnp.where(front[..., 0], (1.0 - plane_rgba[..., 3]) * cloth_mask, cloth_mask)
+        img = jnp.where(
+            front,
+            plane_rgba + (1.0 - plane_rgba[..., 3:]) * img,
+            img + (1.0 - img[..., 3:]) * plane_rgba,
+        )
     if background is not None:
         bg = jnp.reshape(jnp.asarray(background, img.dtype), (1, 1, 3))
         img = jnp.concatenate([img[..., :3] + (1.0 - img[..., 3:]) * bg, img[..., 3:]], axis=-1)
+    if return_cloth_mask:
+        return img, cloth_mask
     return img

@@ -69,6 +69,8 @@ class ShadingBuffer:
         mode "flat".
       color: (H, W, 3) interpolated per-vertex lit colour from `light_vertices`; needed only by mode
         "gouraud".
+      visibility: optional (H, W, nl) shadow visibility of each light in [0, 1] (from
+        `shadows.shadow_visibility`); multiplies every light's radiance. None: no shadows.
     """
 
     position: jax.Array
@@ -79,6 +81,7 @@ class ShadingBuffer:
     mask: jax.Array
     face_normal: jax.Array | None = None
     color: jax.Array | None = None
+    visibility: jax.Array | None = None
 
 
 # ----------------------------------------------------------------------------- vector helpers
@@ -176,14 +179,23 @@ def refract(incident, n, eta):
 # ----------------------------------------------------------------------------- lighting
 
 
-def blinn_phong(normals, eyes, positions, lights: Lights, appearance: Appearance):
+def _light_at(lights, positions, visibility):
+    """`light_vectors` with the radiance scaled by the shadow visibility (..., nl) if given."""
+    l, rad = light_vectors(lights, positions)
+    if visibility is not None:
+        rad = rad * visibility[..., None].astype(rad.dtype)
+    return l, rad
+
+
+def blinn_phong(normals, eyes, positions, lights: Lights, appearance: Appearance, visibility=None):
     """Summed diffuse and specular light at each point.
 
+    visibility: optional (..., nl) shadow visibility per light (None: unshadowed).
     Returns:
       (diffuse, specular), each (..., 3): sum_i radiance_i max(N.L_i, 0) and
       sum_i radiance_i [N.L_i > 0] max(N.H_i, eps)^shininess (clamped before pow; finite grads).
     """
-    l, rad = light_vectors(lights, positions)
+    l, rad = _light_at(lights, positions, visibility)
     n = normals[..., None, :]
     nl = _dot(n, l)
     h = _normalize(l + eyes[..., None, :])
@@ -194,21 +206,24 @@ def blinn_phong(normals, eyes, positions, lights: Lights, appearance: Appearance
     return diffuse, specular
 
 
-def _lit(albedo, normals, eyes, positions, lights, appearance):
-    diffuse, specular = blinn_phong(normals, eyes, positions, lights, appearance)
+def _lit(albedo, normals, eyes, positions, lights, appearance, visibility=None):
+    diffuse, specular = blinn_phong(normals, eyes, positions, lights, appearance, visibility)
     ambient = _bc(appearance.ambient * lights.ambient, diffuse)
     return (
         _bc(albedo, diffuse) * (ambient + diffuse) + _bc(appearance.specular, specular) * specular
     )
 
 
-def light_vertices(positions, normals, eye, lights: Lights, appearance: Appearance):
+def light_vertices(
+    positions, normals, eye, lights: Lights, appearance: Appearance, visibility=None
+):
     """Per-vertex Blinn-Phong colour for Gouraud shading (slide "per-vertex diffuse").
 
     Args:
       positions: (n, 3) vertex positions in m.
       normals: (n, 3) vertex normals (renormalised).
       eye: (3,) or (4,) eye, see `view_vectors`.
+      visibility: optional (n, nl) shadow visibility per vertex and light.
     Returns:
       (n, 3) colour = diffuse * (ambient * ambient_light + sum radiance max(N.L, 0))
       + specular * sum radiance max(N.H, 0)^shininess. Rasterize it as an attribute into
@@ -216,7 +231,7 @@ def light_vertices(positions, normals, eye, lights: Lights, appearance: Appearan
     """
     n = _normalize(normals)
     e = view_vectors(eye, positions)
-    return _lit(appearance.diffuse, n, e, positions, lights, appearance)
+    return _lit(appearance.diffuse, n, e, positions, lights, appearance, visibility)
 
 
 def minnaert_factor(nl, ne, k):
@@ -372,6 +387,7 @@ def shade(
     mask = g.mask
     covered = mask > 0
     p = g.position
+    vis = g.visibility
     e = view_vectors(eye, p)
     n = _normalize(g.normal)
 
@@ -409,17 +425,17 @@ def shade(
 
     if mode == "flat":
         albedo = diffuse_color * texture_rgba()[..., :3]
-        rgb = _lit(albedo, _normalize(g.face_normal), e, p, lights, appearance)
+        rgb = _lit(albedo, _normalize(g.face_normal), e, p, lights, appearance, vis)
     elif mode == "gouraud":
         rgb = g.color
     elif mode == "phong":
-        rgb = _lit(diffuse_color * texture_rgba()[..., :3], n, e, p, lights, appearance)
+        rgb = _lit(diffuse_color * texture_rgba()[..., :3], n, e, p, lights, appearance, vis)
     elif mode == "bump_diffuse":
-        diffuse, _ = blinn_phong(bumped(), e, p, lights, appearance)
+        diffuse, _ = blinn_phong(bumped(), e, p, lights, appearance, vis)
         rgb = diffuse_color * texture_rgba()[..., :3] * (ambient + diffuse)
     elif mode in ("minnaert", "minnaert_table"):
         nb = bumped()
-        l, rad = light_vectors(lights, p)
+        l, rad = _light_at(lights, p, vis)
         nl = _dot(nb[..., None, :], l)
         ne = jnp.broadcast_to(_dot(nb, e)[..., None], nl.shape)
         if mode == "minnaert":
@@ -436,12 +452,12 @@ def shade(
     elif mode == "second_pass":
         nb = bumped()
         first = reflectance * reflection_pass(nb)
-        _, specular = blinn_phong(nb, e, p, lights, appearance)
+        _, specular = blinn_phong(nb, e, p, lights, appearance, vis)
         rgba = texture_rgba()
         a = jnp.clip(appearance.second_pass_alpha * rgba[..., 3:4], 0.0, 1.0)
         rgb = first * (1.0 - a) + a * diffuse_color * rgba[..., :3] + specular_color * specular
     elif mode == "sphere_reflection":
-        base = _lit(diffuse_color * texture_rgba()[..., :3], n, e, p, lights, appearance)
+        base = _lit(diffuse_color * texture_rgba()[..., :3], n, e, p, lights, appearance, vis)
         sphere_color, blend = trace_spheres(p, reflect(e, n), spheres, lights, appearance)
         rgb = base + blend[..., None] * (reflectance * sphere_color - base)
     else:  # reflect_refract
@@ -451,7 +467,7 @@ def shade(
         else:
             t = refract(-e, n, appearance.ior)
         refr = sample_cube(env, t)
-        _, specular = blinn_phong(n, e, p, lights, appearance)
+        _, specular = blinn_phong(n, e, p, lights, appearance, vis)
         b = appearance.refraction_blend
         rgb = reflectance * (refl + b * (refr - refl)) + specular_color * specular
     rgb = jnp.where(covered[..., None], rgb, 0.0) * mask[..., None]

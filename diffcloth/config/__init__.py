@@ -1,0 +1,204 @@
+"""The TOML schema, in one place: one module per pipeline stage, parsed once into typed settings.
+
+    physics.py  [net] [material] [sim] [[spheres]] [[planes]]  -> NetConfig, MaterialConfig, ...
+    render.py   [render] [[cameras]] [lights] [appearance]     -> RenderConfig, CameraConfig, ...
+    bodies.py   [[bodies]] [coupling]                          -> BodiesConfig
+    fit.py      [fit] [fit.initial] [truth]                    -> FitSettings
+
+`load_config(path)` reads a file and validates every section up front: any unknown key, value out
+of range, or NaN/inf is a `ConfigError` (a ValueError) naming the file, the section, the key, the
+bad value and the allowed range. The settings then flow down the stages: `build_physics(config)`
+makes the physics pytrees, `diffcloth.scene.build_scene(config)` the whole `Scene`, and
+`diffcloth.experiment.run_fit_config` reads `config.fit`. `schema()` lists every section's keys;
+docs/config.md documents them (a test keeps the two in step).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from diffcloth.config._fields import (
+    ConfigError,
+    array_of_tables,
+    check_keys,
+    dataclass_keys,
+    get_bool,
+    get_choice,
+    get_number,
+    get_table,
+    get_vec3,
+)
+from diffcloth.config.bodies import BodiesConfig, parse_bodies_section
+from diffcloth.config.fit import FitSettings, check_devices, parse_fit
+from diffcloth.config.physics import (
+    MaterialConfig,
+    NetConfig,
+    PhysicsScene,
+    PlaneConfig,
+    SimConfig,
+    SphereConfig,
+    build_physics,
+    parse_material,
+    parse_net,
+    parse_planes,
+    parse_sim,
+    parse_spheres,
+)
+from diffcloth.config.render import (
+    CameraConfig,
+    DirectionalLightConfig,
+    LightsConfig,
+    PointLightConfig,
+    RenderConfig,
+    parse_appearance,
+    parse_cameras,
+    parse_lights,
+    parse_render,
+)
+
+__all__ = [
+    "BodiesConfig",
+    "CameraConfig",
+    "Config",
+    "ConfigError",
+    "DirectionalLightConfig",
+    "FitSettings",
+    "LightsConfig",
+    "MaterialConfig",
+    "NetConfig",
+    "PhysicsScene",
+    "PlaneConfig",
+    "PointLightConfig",
+    "RenderConfig",
+    "SimConfig",
+    "SphereConfig",
+    "array_of_tables",
+    "build_physics",
+    "check_devices",
+    "check_keys",
+    "dataclass_keys",
+    "get_bool",
+    "get_choice",
+    "get_number",
+    "get_table",
+    "get_vec3",
+    "load_config",
+    "parse_config",
+    "parse_fit",
+    "schema",
+]
+
+SECTIONS = (
+    "net", "material", "sim", "spheres", "planes",  # physics
+    "render", "camera", "cameras", "lights", "appearance",  # render
+    "bodies", "coupling",  # rigid bodies
+    "fit", "truth",  # fitting
+)  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """A whole validated scene config: one typed field per section.
+
+    `fit` is None for a config without a [fit] section. `sections` keeps the raw tables
+    (read-only), for tools that want to show or copy them.
+    """
+
+    net: NetConfig = NetConfig()
+    material: MaterialConfig = MaterialConfig()
+    sim: SimConfig = SimConfig()
+    spheres: tuple[SphereConfig, ...] = ()
+    planes: tuple[PlaneConfig, ...] = ()
+    render: RenderConfig = RenderConfig()
+    cameras: tuple[CameraConfig, ...] = (CameraConfig(),)
+    lights: LightsConfig = LightsConfig()
+    appearance: Mapping[str, Any] = dataclasses.field(
+        default_factory=lambda: types.MappingProxyType({})
+    )
+    bodies: BodiesConfig = BodiesConfig()
+    fit: FitSettings | None = None
+    sections: Mapping[str, Any] = dataclasses.field(
+        default_factory=lambda: types.MappingProxyType({}), compare=False, hash=False
+    )
+    path: str | None = None
+
+
+def parse_config(data: Mapping[str, Any], path: str | None = None) -> Config:
+    """Validate a TOML-like dict into a Config (ConfigError names any bad key or value)."""
+    check_keys(data, SECTIONS, "top level")
+    for name in ("net", "material", "sim", "render", "lights", "appearance", "coupling", "fit"):
+        if name in data and not isinstance(data[name], Mapping):
+            raise ConfigError(f"[{name}] must be a table, got {data[name]!r}")
+    base_dir = Path(path).parent if path else None
+    config = Config(
+        net=parse_net(data.get("net", {})),
+        material=parse_material(data.get("material", {})),
+        sim=parse_sim(data.get("sim", {})),
+        spheres=parse_spheres(data),
+        planes=parse_planes(data),
+        render=parse_render(data.get("render", {})),
+        cameras=parse_cameras(data),
+        lights=parse_lights(data.get("lights", {})),
+        appearance=types.MappingProxyType(parse_appearance(data.get("appearance", {}))),
+        bodies=parse_bodies_section(data),
+        fit=parse_fit(data, base_dir) if ("fit" in data or "truth" in data) else None,
+        sections=types.MappingProxyType(
+            {k: data[k] for k in SECTIONS if k in data and k not in ("net", "material", "sim")}
+        ),
+        path=path,
+    )
+    _check_across_sections(config)
+    return config
+
+
+def _check_across_sections(config: Config) -> None:
+    """Rules that tie two sections together."""
+    stride, frames = config.render.frame_stride, config.sim.num_frames
+    if stride > frames:
+        raise ConfigError(
+            f"[render] frame_stride = {stride} is larger than [sim] num_frames = {frames}, so no "
+            f"frame would be rendered; allowed range [1, {frames}]"
+        )
+
+
+def load_config(path) -> Config:
+    """Read and validate a TOML scene config. Raises ConfigError (a ValueError) on bad content."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: invalid TOML: {err}") from err
+    try:
+        return parse_config(data, str(path))
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
+
+
+def schema() -> dict[str, tuple[str, ...]]:
+    """{section: allowed keys} of every section (array-of-table entries by their entry name)."""
+    from diffcloth.physics.rigid import BODY_KEYS
+    from diffcloth.render import appearance_fields
+
+    fit_keys = tuple(k for k in dataclass_keys(FitSettings) if k != "truth")
+    return {
+        "net": dataclass_keys(NetConfig),
+        "material": dataclass_keys(MaterialConfig),
+        "sim": dataclass_keys(SimConfig),
+        "spheres": dataclass_keys(SphereConfig),
+        "planes": dataclass_keys(PlaneConfig),
+        "render": dataclass_keys(RenderConfig),
+        "cameras": dataclass_keys(CameraConfig),
+        "lights": ("ambient", "directional", "point"),
+        "lights.directional": dataclass_keys(DirectionalLightConfig),
+        "lights.point": dataclass_keys(PointLightConfig),
+        "appearance": appearance_fields(),
+        "bodies": tuple(sorted(BODY_KEYS)),
+        "coupling": ("two_way",),
+        "fit": fit_keys,
+    }

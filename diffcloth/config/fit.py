@@ -1,0 +1,220 @@
+"""Fit sections of the schema: [fit], [fit.initial] and [truth] (docs/config.md).
+
+[fit]   free = ["stretch", "bend"]   parameters to fit (diffcloth.pipeline.PARAMETERS)
+        steps = 60, learning_rate = 0.05, loss = "l2" | "l1" | "pyramid", patience = 30,
+        schedule = "cosine" (Adam's rate decays to 10% over the steps, damping the
+        oscillation around the optimum) | "constant",
+        noise = 0.0 (std of Gaussian noise added to synthetic targets), seed = 0,
+        multistart = 1, devices = 1 (spread the multistart guesses over this many devices;
+        multistart must be a multiple; `diffcloth fit --devices N` overrides),
+        identifiability = true, noise_sigma = 0.01,
+        targets = "folder"   (instead of [truth]: PNGs, one subfolder cam0, cam1, ... per camera
+                              or the PNGs directly for a single camera)
+        target_glob = "*.png", target_cameras = ["cam0", ...], target_frames = [first, stop],
+        target_stride = 1, colorspace = "auto" | "srgb" | "linear"   (target layout, see
+                              diffcloth.experiment.load_targets)
+[fit.initial]  name = value   starting values (default: the scene's own)
+[truth]        name = value   true values, used to render synthetic targets
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from diffcloth.config import _fields as cfg
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSettings:
+    free: tuple[str, ...]
+    steps: int = 60
+    learning_rate: float = 0.05
+    loss: str = "l2"
+    patience: int = 30
+    schedule: str = "cosine"
+    noise: float = 0.0
+    seed: int = 0
+    multistart: int = 1
+    devices: int = 1
+    identifiability: bool = True
+    noise_sigma: float = 0.01
+    targets: str | None = None
+    target_glob: str = "*.png"
+    target_cameras: tuple[str, ...] | None = None
+    target_frames: tuple[int, int] | None = None
+    target_stride: int = 1
+    colorspace: str = "auto"
+    initial: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    truth: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+
+def _param_value(name: str, value, where: str):
+    if isinstance(value, bool) or not isinstance(value, int | float | list):
+        raise cfg.ConfigError(f"[{where}] {name} = {value!r} must be a number or a list of numbers")
+    if isinstance(value, list) and not all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in value
+    ):
+        raise cfg.ConfigError(f"[{where}] {name} = {value!r} must be a number or a list of numbers")
+    arr = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise cfg.ConfigError(f"[{where}] {name} = {value!r} must be finite")
+    return arr
+
+
+def _check_range(name: str, arr, value, where: str) -> None:
+    """The parameter's allowed range (diffcloth.pipeline.PARAMETER_RANGES, as `apply_params`)."""
+    from diffcloth.pipeline import PARAMETER_RANGES, ParamRange
+
+    rng = PARAMETER_RANGES.get(name, ParamRange())
+    if not rng.contains(arr):
+        raise cfg.ConfigError(f"[{where}] {name} = {value!r} is out of range; allowed {rng.text()}")
+
+
+def _check_fittable(name: str, arr, value) -> None:
+    """A starting value must lie strictly inside the fitted parameter's constraint (the optimizer
+    works on an unconstrained transform of it: log for positive values, logit for (0, 1))."""
+    from diffcloth.fit.constraints import Bounded, Positive
+    from diffcloth.fit.scene_fit import default_constraint
+
+    con = default_constraint(name)
+    if isinstance(con, Positive) and not np.all(arr > 0):
+        raise cfg.ConfigError(
+            f"[fit.initial] {name} = {value!r} is outside the fitted range (0, inf): {name} is "
+            "fitted in log space, so its starting value must be > 0"
+        )
+    if isinstance(con, Bounded) and not np.all((arr > con.lo) & (arr < con.hi)):
+        raise cfg.ConfigError(
+            f"[fit.initial] {name} = {value!r} is outside the fitted range ({con.lo:g}, "
+            f"{con.hi:g}): {name} is fitted through a logistic transform, so its starting value "
+            "must lie strictly inside"
+        )
+
+
+def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitSettings:
+    """Validate [fit], [fit.initial] and [truth] (ConfigError names the bad key and range)."""
+    from diffcloth import pipeline
+    from diffcloth.fit.scene_fit import LOSSES
+
+    if "truth" in sections and "fit" not in sections:
+        raise cfg.ConfigError("[truth] needs a [fit] section naming the free parameters")
+
+    t = sections.get("fit")
+    if t is None:
+        raise cfg.ConfigError(
+            'missing [fit] section: name the free parameters, e.g. free = ["stretch"]'
+        )
+    w = "fit"
+    keys = [f.name for f in dataclasses.fields(FitSettings) if f.name != "truth"]
+    cfg.check_keys(t, keys, w)
+    free = t.get("free")
+    if not isinstance(free, list) or not free or not all(isinstance(n, str) for n in free):
+        raise cfg.ConfigError("[fit] free must be a non-empty list of parameter names")
+    try:
+        pipeline.check_param_names(free)
+    except ValueError as err:
+        raise cfg.ConfigError(f"[fit] free: {err}") from None
+    initial = {}
+    init_table = t.get("initial", {})
+    if not isinstance(init_table, Mapping):
+        raise cfg.ConfigError(
+            f"[fit] initial = {init_table!r} must be a table of starting values, e.g. "
+            f"[fit.initial] {free[0]} = ..."
+        )
+    for name, value in init_table.items():
+        if name not in free:
+            raise cfg.ConfigError(f"[fit.initial] {name} is not a free parameter; free: {free}")
+        arr = _param_value(name, value, "fit.initial")
+        _check_range(name, arr, value, "fit.initial")
+        _check_fittable(name, arr, value)
+        initial[name] = arr
+    truth = {}
+    truth_table = sections.get("truth", {})
+    if not isinstance(truth_table, Mapping):
+        raise cfg.ConfigError(f"[truth] must be a table of name = value, got {truth_table!r}")
+    for name, value in truth_table.items():
+        try:
+            pipeline.check_param_names([name])
+        except ValueError as err:
+            raise cfg.ConfigError(f"[truth] {err}") from None
+        arr = _param_value(name, value, "truth")
+        _check_range(name, arr, value, "truth")
+        truth[name] = arr
+    targets = t.get("targets")
+    if targets is None and not truth:
+        raise cfg.ConfigError('give target images ([fit] targets = "folder") or a [truth] table')
+    if targets is not None:
+        if not isinstance(targets, str):
+            raise cfg.ConfigError("[fit] targets must be a folder path (string)")
+        targets = str((base_dir or Path(".")) / targets)
+    multistart = cfg.get_number(t, "multistart", 1, where=w, lo=1, hi=64, integer=True)
+    devices = cfg.get_number(t, "devices", 1, where=w, lo=1, hi=4096, integer=True)
+    check_devices(devices, multistart, "[fit] devices")
+    glob = t.get("target_glob", "*.png")
+    if not isinstance(glob, str) or not glob.strip() or glob.startswith("/") or ".." in glob:
+        raise cfg.ConfigError(
+            f"[fit] target_glob = {glob!r} must be a file pattern relative to each camera folder, "
+            'e.g. "*.png" or "rgb/frame_*.png"'
+        )
+    cams = t.get("target_cameras")
+    if cams is not None:
+        if (not isinstance(cams, list) or not cams
+                or not all(isinstance(c, str) and c.strip() and ".." not in c for c in cams)):
+            raise cfg.ConfigError(
+                f"[fit] target_cameras = {cams!r} must be a list of folder names (or globs "
+                'matching one folder each) inside targets, one per camera, e.g. ["left", "right"]'
+            )  # fmt: skip
+        cams = tuple(cams)
+    frames = t.get("target_frames")
+    if frames is not None:
+        if (not isinstance(frames, list) or len(frames) != 2
+                or not all(isinstance(f, int) and not isinstance(f, bool) for f in frames)
+                or not 0 <= frames[0] < frames[1]):
+            raise cfg.ConfigError(
+                f"[fit] target_frames = {frames!r} must be [first, stop]: 0 <= first < stop, "
+                "image indices after sorting (stop excluded)"
+            )  # fmt: skip
+        frames = (int(frames[0]), int(frames[1]))
+    if targets is None:
+        for key in ("target_glob", "target_cameras", "target_frames", "target_stride",
+                    "colorspace"):  # fmt: skip
+            if key in t:
+                raise cfg.ConfigError(f"[fit] {key} needs [fit] targets (a folder of images)")
+    ident = t.get("identifiability", True)
+    if not isinstance(ident, bool):
+        raise cfg.ConfigError("[fit] identifiability must be true or false")
+    return FitSettings(
+        free=tuple(free),
+        steps=cfg.get_number(t, "steps", 60, where=w, lo=1, integer=True),
+        learning_rate=cfg.get_number(t, "learning_rate", 0.05, where=w, lo=0, lo_inclusive=False),
+        loss=cfg.get_choice(t, "loss", "l2", LOSSES, where=w),
+        patience=cfg.get_number(t, "patience", 30, where=w, lo=1, integer=True),
+        schedule=cfg.get_choice(t, "schedule", "cosine", ("cosine", "constant"), where=w),
+        noise=cfg.get_number(t, "noise", 0.0, where=w, lo=0, hi=1),
+        seed=cfg.get_number(t, "seed", 0, where=w, integer=True),
+        multistart=multistart,
+        devices=devices,
+        identifiability=ident,
+        noise_sigma=cfg.get_number(t, "noise_sigma", 0.01, where=w, lo=0, lo_inclusive=False),
+        targets=targets,
+        target_glob=glob,
+        target_cameras=cams,
+        target_frames=frames,
+        target_stride=cfg.get_number(t, "target_stride", 1, where=w, lo=1, integer=True),
+        colorspace=cfg.get_choice(t, "colorspace", "auto", ("auto", "srgb", "linear"), where=w),
+        initial=initial,
+        truth=truth,
+    )
+
+
+def check_devices(devices: int, multistart: int, where: str = "devices") -> None:
+    """ConfigError unless the multistart guesses split evenly over the devices."""
+    if devices > 1 and multistart % devices:
+        raise cfg.ConfigError(
+            f"{where} = {devices} spreads the multistart guesses over devices, so [fit] multistart "
+            f"must be a multiple of it (got multistart = {multistart})"
+        )

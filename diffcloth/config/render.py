@@ -1,0 +1,242 @@
+"""Render sections of the schema: [render], [[cameras]] (or one [camera]), [lights] and
+[appearance] (docs/config.md). Parsed into plain frozen settings;
+`diffcloth.scene.build_scene` turns them into the render stage's pytrees (cameras, lights,
+appearance)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from diffcloth.config._fields import (
+    ConfigError,
+    check_keys,
+    dataclass_keys,
+    get_bool,
+    get_choice,
+    get_number,
+    get_vec3,
+)
+
+BASES = ("bspline", "bezier", "clamped")
+TEXTURE_CHOICES = ("none", "default")
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderConfig:
+    """[render]: image size, tessellation and shading choices (static: they shape the program)."""
+
+    width: int = 64
+    height: int = 64
+    level: int = 4
+    basis: str = "bspline"
+    shading: str = "phong"
+    background: tuple = (0.05, 0.05, 0.08)
+    frame_stride: int = 1
+    flip: bool = True
+    textures: str = "none"
+    first_frame: int = 1
+    push_out_offset: float = 0.0
+    draw_planes: bool = False
+    plane_color: tuple = (0.6, 0.6, 0.6)
+    shadow_map_size: int = 256
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraConfig:
+    """One [[cameras]] entry: look-at camera; angles in degrees, distances in m."""
+
+    eye: tuple[float, float, float] = (0.0, 1.6, 2.4)
+    target: tuple[float, float, float] = (0.0, 0.5, 0.0)
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_y: float = 45.0
+    projection: str = "perspective"
+    near: float = 0.1
+    far: float = 100.0
+    background: tuple[float, float, float] | None = None  # None: the [render] background
+    exposure: float = 1.0  # gain on this camera's whole image
+
+
+@dataclasses.dataclass(frozen=True)
+class DirectionalLightConfig:
+    """One [[lights.directional]] entry: `direction` points from the scene towards the light."""
+
+    direction: tuple[float, float, float] = (0.3, 1.0, 0.6)
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    intensity: float = 1.0
+    shadows: bool = False
+    softness: float = 2.0
+
+
+@dataclasses.dataclass(frozen=True)
+class PointLightConfig:
+    """One [[lights.point]] entry."""
+
+    position: tuple[float, float, float] = (0.0, 2.0, 0.0)
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    intensity: float = 1.0
+    shadows: bool = False
+    softness: float = 2.0
+
+
+@dataclasses.dataclass(frozen=True)
+class LightsConfig:
+    """[lights]: ambient colour plus any number of directional and point lights."""
+
+    ambient: tuple[float, float, float] = (0.15, 0.15, 0.15)
+    directional: tuple[DirectionalLightConfig, ...] = (DirectionalLightConfig(),)
+    point: tuple[PointLightConfig, ...] = ()
+
+
+def parse_render(t: Mapping[str, Any]) -> RenderConfig:
+    """Validate [render]."""
+    from diffcloth.render import SHADING_MODES
+
+    w = "render"
+    check_keys(t, dataclass_keys(RenderConfig), w)
+    d = RenderConfig()
+    return RenderConfig(
+        width=get_number(t, "width", d.width, where=w, lo=1, hi=8192, integer=True),
+        height=get_number(t, "height", d.height, where=w, lo=1, hi=8192, integer=True),
+        level=get_number(t, "level", d.level, where=w, lo=2, hi=64, integer=True),
+        basis=get_choice(t, "basis", d.basis, BASES, where=w),
+        shading=get_choice(t, "shading", d.shading, SHADING_MODES, where=w),
+        background=tuple(get_vec3(t, "background", d.background, where=w)),
+        frame_stride=get_number(t, "frame_stride", d.frame_stride, where=w, lo=1, integer=True),
+        flip=get_bool(t, "flip", d.flip, where=w),
+        textures=get_choice(t, "textures", d.textures, TEXTURE_CHOICES, where=w),
+        first_frame=get_number(t, "first_frame", d.first_frame, where=w, lo=0, hi=1, integer=True),
+        push_out_offset=get_number(t, "push_out_offset", d.push_out_offset, where=w, lo=0),
+        draw_planes=get_bool(t, "draw_planes", d.draw_planes, where=w),
+        plane_color=tuple(get_vec3(t, "plane_color", d.plane_color, where=w)),
+        shadow_map_size=get_number(
+            t, "shadow_map_size", d.shadow_map_size, where=w, lo=8, hi=4096, integer=True
+        ),
+    )
+
+
+def _parse_camera(t: Mapping[str, Any], where: str) -> CameraConfig:
+    from diffcloth.render.camera import PROJECTION_KINDS
+
+    check_keys(t, dataclass_keys(CameraConfig), where)
+    if "eye" not in t:
+        raise ConfigError(f"[{where}] missing required key 'eye'")
+    d = CameraConfig()
+    cam = CameraConfig(
+        eye=get_vec3(t, "eye", where=where),
+        target=get_vec3(t, "target", (0.0, 0.0, 0.0), where=where),
+        up=get_vec3(t, "up", d.up, where=where),
+        fov_y=get_number(
+            t, "fov_y", d.fov_y, where=where, lo=0, hi=180, lo_inclusive=False, hi_inclusive=False
+        ),
+        projection=get_choice(t, "projection", d.projection, PROJECTION_KINDS, where=where),
+        near=get_number(t, "near", d.near, where=where, lo=0, lo_inclusive=False),
+        far=get_number(t, "far", d.far, where=where, lo=0, lo_inclusive=False),
+        background=get_vec3(t, "background", where=where) if "background" in t else None,
+        exposure=get_number(t, "exposure", d.exposure, where=where, lo=0, lo_inclusive=False),
+    )
+    if cam.background is not None and not all(0.0 <= v <= 1.0 for v in cam.background):
+        raise ConfigError(
+            f"[{where}] background = {list(cam.background)} must be linear RGB in [0, 1]"
+        )
+    if cam.far <= cam.near:
+        raise ConfigError(f"[{where}] far = {cam.far} must be larger than near = {cam.near}")
+    view = [e - g for e, g in zip(cam.eye, cam.target, strict=True)]
+    if math.hypot(*view) == 0:
+        raise ConfigError(f"[{where}] eye = {list(cam.eye)} must differ from target")
+    if math.hypot(*cam.up) == 0:
+        raise ConfigError(f"[{where}] up = {list(cam.up)} must be non-zero")
+    return cam
+
+
+def parse_cameras(data: Mapping[str, Any]) -> tuple[CameraConfig, ...]:
+    """[[cameras]] (or a single [camera]); a default camera when neither is given."""
+    if "camera" in data and "cameras" in data:
+        raise ConfigError("give either [camera] or [[cameras]], not both")
+    if "cameras" in data:
+        tables = data["cameras"]
+        if isinstance(tables, Mapping):
+            tables = [tables]
+        if not isinstance(tables, list) or not all(isinstance(t, Mapping) for t in tables):
+            raise ConfigError("[[cameras]] must be an array of tables ([[cameras]] per camera)")
+        if not tables:
+            raise ConfigError("[[cameras]] must hold at least one camera")
+    elif "camera" in data:
+        if not isinstance(data["camera"], Mapping):
+            raise ConfigError("[camera] must be a table")
+        tables = [data["camera"]]
+    else:
+        return (CameraConfig(),)
+    return tuple(_parse_camera(t, f"cameras #{i}") for i, t in enumerate(tables))
+
+
+def _softness(e: Mapping[str, Any], default: float, where: str) -> float:
+    from diffcloth.render.lights import SOFTNESS_RANGE
+
+    lo, hi = SOFTNESS_RANGE
+    return get_number(e, "softness", default, where=where, lo=lo, hi=hi)
+
+
+def parse_lights(t: Mapping[str, Any]) -> LightsConfig:
+    """Validate [lights] with its [[lights.directional]] and [[lights.point]] entries."""
+    w = "lights"
+    if not isinstance(t, Mapping):
+        raise ConfigError("[lights] must be a table")
+    check_keys(t, dataclass_keys(LightsConfig), w)
+    directional_tables = t.get("directional", [{}])
+    point_tables = t.get("point", [])
+    for name, tables in (("directional", directional_tables), ("point", point_tables)):
+        if not isinstance(tables, list) or not all(isinstance(e, Mapping) for e in tables):
+            raise ConfigError(f"[[lights.{name}]] must be an array of tables")
+    directional = []
+    for i, e in enumerate(directional_tables):
+        where = f"lights.directional #{i}"
+        check_keys(e, dataclass_keys(DirectionalLightConfig), where)
+        d = DirectionalLightConfig()
+        light = DirectionalLightConfig(
+            direction=get_vec3(e, "direction", d.direction, where=where),
+            color=get_vec3(e, "color", d.color, where=where),
+            intensity=get_number(e, "intensity", d.intensity, where=where, lo=0),
+            shadows=get_bool(e, "shadows", d.shadows, where=where),
+            softness=_softness(e, d.softness, where),
+        )
+        if math.hypot(*light.direction) == 0:
+            raise ConfigError(f"[{where}] direction = {list(light.direction)} must be non-zero")
+        directional.append(light)
+    point = []
+    for i, e in enumerate(point_tables):
+        where = f"lights.point #{i}"
+        check_keys(e, dataclass_keys(PointLightConfig), where)
+        d = PointLightConfig()
+        point.append(
+            PointLightConfig(
+                position=get_vec3(e, "position", where=where),
+                color=get_vec3(e, "color", d.color, where=where),
+                intensity=get_number(e, "intensity", d.intensity, where=where, lo=0),
+                shadows=get_bool(e, "shadows", d.shadows, where=where),
+                softness=_softness(e, d.softness, where),
+            )
+        )
+    return LightsConfig(
+        ambient=get_vec3(t, "ambient", LightsConfig.ambient, where=w),
+        directional=tuple(directional),
+        point=tuple(point),
+    )
+
+
+def parse_appearance(t: Mapping[str, Any]) -> Mapping[str, Any]:
+    """[appearance]: names and values of `render.Appearance` fields (values checked when built)."""
+    from diffcloth.render import appearance_fields
+
+    if not isinstance(t, Mapping):
+        raise ConfigError("[appearance] must be a table")
+    check_keys(t, appearance_fields(), "appearance")
+    for key, value in t.items():
+        flat = value if isinstance(value, list) else [value]
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in flat):
+            raise ConfigError(
+                f"[appearance] {key} = {value!r} must be a number or a list of numbers"
+            )
+    return dict(t)

@@ -1,0 +1,561 @@
+"""What the viewer shows, without the viewer: frames of a scene, re-simulated on demand.
+
+`ViewModel` holds a Scene, the current slider values and the frames on screen (tessellated cloth
+vertices per frame, sphere and box bodies per frame). `resimulate(params)` runs the jitted
+pipeline (physics -> tessellation -> per-vertex sphere collision) again; `push(...)` and
+`fire(...)` re-simulate from the current frame on with an impulse or a thruster on a rigid body.
+The compiled function is cached at module level (one compile per scene structure), so a slider
+move costs one run of the physics, not a compile. Nothing here imports viser.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import threading
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffcloth import physics, surface
+from diffcloth.pipeline import apply_params, frame_spheres, param_value, split_colliders
+from diffcloth.shapes import Sphere
+
+__all__ = ["SLIDERS", "FitData", "Frames", "ViewModel", "load_view", "slider_range"]
+
+#: slider name -> (label, unit, scale). "log": the slider moves log10 of the value.
+SLIDERS: dict[str, tuple[str, str, str]] = {
+    "stretch": ("stretch", "N/m", "log"),
+    "shear": ("shear", "N/m", "log"),
+    "bend": ("bend", "N m", "log"),
+    "damping": ("damping", "s", "log"),
+    "density": ("density", "kg/m^2", "log"),
+    "drag_normal": ("drag (normal)", "N s/m^3", "lin"),
+    "drag_tangent": ("drag (tangent)", "N s/m^3", "lin"),
+}
+WIND_LIMIT = 5.0  # m/s, default range of each wind component slider
+
+
+def slider_range(name: str, value: float) -> tuple[float, float]:
+    """(lo, hi) of a slider around the scene's value: two decades either side for "log" sliders
+    (in log10 units), [0, max(4 value, 2)] for linear ones, +-5 m/s (or more) for wind."""
+    if name.startswith("wind"):
+        lim = max(WIND_LIMIT, 2 * abs(value))
+        return -lim, lim
+    if SLIDERS[name][2] == "log":
+        c = math.log10(value) if value > 0 else -4.0
+        return c - 2.0, c + 2.0
+    return 0.0, max(4.0 * value, 2.0)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Frames:
+    """One simulated sequence, ready to draw (numpy after `to_numpy`).
+
+    cloth: (T, n, 3) tessellated, collided surface vertices in m; x, v: (T, rows, cols, 3) control
+    net states; body_position: (T, nb, 3); body_orientation: (T, nb, 4) quaternions w, x, y, z;
+    body_velocity: (T, nb, 3); ok: () bool, finite and not blown up.
+    """
+
+    cloth: Any
+    x: Any
+    v: Any
+    body_position: Any
+    body_orientation: Any
+    body_velocity: Any
+    body_angular_velocity: Any
+    ok: Any
+
+
+def _stack_bodies(btraj, field, T, width, dtype):
+    if not btraj:
+        return jnp.zeros((T, 0, width), dtype)
+    return jnp.stack([getattr(b, field) for b in btraj], axis=1)
+
+
+def _thrusters(bodies, directions, strengths):
+    """One thruster per body at its centre; directions (nb, 3) body frame, strengths (nb,) N."""
+    zeros = jnp.zeros((1, 3), directions.dtype)
+    return tuple(
+        physics.rigid.Thrusters(zeros, directions[i : i + 1], strengths[i : i + 1])
+        for i in range(len(bodies))
+    )
+
+
+def _simulate_frames(scene, params, state, bodies, controls, directions, strengths, level):
+    """Params + a start state -> Frames of scene.num_frames frames (jitted by `_compiled`).
+
+    controls: (nb, T, 1) thruster levels per body and frame; directions (nb, 3) and strengths
+    (nb,) the thrusters (body frame, N). Without bodies these are empty and ignored.
+    """
+    scene = apply_params(scene, params)
+    T = scene.num_frames
+    if scene.bodies:
+        planes, spheres = split_colliders(scene.colliders)
+        traj, btraj = physics.coupled_rollout(
+            scene.net,
+            scene.sim,
+            scene.material,
+            state,
+            bodies,
+            num_frames=T,
+            planes=planes,
+            colliders=spheres,
+            thrusters=_thrusters(bodies, directions, strengths),
+            controls=tuple(controls[i] for i in range(len(bodies))),
+            two_way=scene.two_way,
+        )
+    else:
+        traj = physics.rollout(
+            scene.net, scene.sim, scene.material, state, num_frames=T, colliders=scene.colliders
+        )
+        btraj = ()
+    sph = frame_spheres(scene, btraj)  # None without sphere bodies: then the static spheres
+    if sph is None and scene.spheres is not None:
+        static = scene.spheres.batched()
+        sph = Sphere(jnp.broadcast_to(static.center, (T,) + static.center.shape), static.radius)
+
+    def one(x, centers):
+        s = surface.tessellate(x, level, scene.basis, flip=scene.flip)
+        if sph is not None:
+            s = surface.collide_surface(s, Sphere(centers, sph.radius))
+        return s.positions
+
+    centers = sph.center if sph is not None else jnp.zeros((T, 0, 3), traj.x.dtype)
+    cloth = jax.vmap(one)(traj.x, centers)
+    dtype = traj.x.dtype
+    ok = physics.trajectory_ok(scene.net, traj) & jnp.all(jnp.isfinite(cloth))
+    return Frames(
+        cloth=cloth,
+        x=traj.x,
+        v=traj.v,
+        body_position=_stack_bodies(btraj, "position", T, 3, dtype),
+        body_orientation=_stack_bodies(btraj, "orientation", T, 4, dtype),
+        body_velocity=_stack_bodies(btraj, "velocity", T, 3, dtype),
+        body_angular_velocity=_stack_bodies(btraj, "angular_velocity", T, 3, dtype),
+        ok=ok,
+    )
+
+
+#: the jitted simulate function, shared by every viewer in the process: jax.jit's own cache then
+#: keeps one compiled program per scene structure (net size, frames, bodies, level).
+_SIMULATE = jax.jit(_simulate_frames, static_argnames=("level",))
+
+
+def _render_one(scene, params, x, centers):
+    """One camera's diffcloth render (H, W, 3) of control net x; centers (n, 3) this frame's
+    spheres (static + sphere bodies) or (0, 3)."""
+    from diffcloth.pipeline import render_frame
+
+    scene = apply_params(scene, params)
+    spheres = None
+    if centers.shape[0]:
+        radius = _sphere_radii(scene)
+        spheres = Sphere(centers, radius)
+    return render_frame(scene, x, spheres)[0]
+
+
+_RENDER = jax.jit(_render_one)
+
+
+def _sphere_radii(scene):
+    radii = []
+    if scene.spheres is not None:
+        radii.append(scene.spheres.batched().radius)
+    balls = [b for b in scene.bodies if b.shape == "sphere"]
+    if balls:
+        radii.append(jnp.stack([jnp.reshape(b.radius, ()) for b in balls]))
+    return jnp.concatenate(radii) if radii else jnp.zeros((0,))
+
+
+def _to_numpy(frames: Frames) -> Frames:
+    return Frames(
+        **{f.name: np.asarray(getattr(frames, f.name)) for f in dataclasses.fields(Frames)}
+    )
+
+
+def camera_pose(camera) -> dict[str, Any]:
+    """eye, look-at point, up (3,) and vertical field of view (rad) of a `render.Camera`,
+    recovered from its view and projection matrices (y up, OpenGL conventions)."""
+    view = np.asarray(camera.view, np.float64)
+    R, t = view[:3, :3], view[:3, 3]
+    eye = -R.T @ t
+    forward = -R[2]
+    up = R[1]
+    proj = np.asarray(camera.projection, np.float64)
+    if camera.kind == "perspective" and proj[1, 1] > 0:
+        fov = 2.0 * math.atan(1.0 / proj[1, 1])
+    else:
+        fov = math.radians(45.0)
+    return {"eye": eye, "look_at": eye + forward, "up": up, "fov": fov}
+
+
+def _srgb(rgb) -> tuple[int, int, int]:
+    c = np.clip(np.asarray(rgb, np.float64), 0.0, 1.0) ** (1.0 / 2.2)
+    return tuple(int(round(255 * v)) for v in c)
+
+
+@dataclasses.dataclass
+class FitData:
+    """A fit result folder: fitted and target parameters, loss history, the result table."""
+
+    folder: Path
+    fitted: dict[str, np.ndarray]
+    truth: dict[str, np.ndarray]
+    summary: dict
+    loss: np.ndarray  # (steps,)
+
+    def table_markdown(self) -> str:
+        """The parameter table of result.json as markdown."""
+        rows = ["| parameter | true | initial | fitted | rel. error |", "|---|---|---|---|---|"]
+
+        def fmt(v):
+            if v is None:
+                return "-"
+            if isinstance(v, list):
+                return "[" + ", ".join(fmt(a) for a in v) + "]"
+            return f"{v:.4g}"
+
+        for name, e in self.summary.get("params", {}).items():
+            err = e.get("relative_error")
+            rows.append(
+                f"| {name} | {fmt(e.get('true'))} | {fmt(e.get('initial'))} | "
+                f"{fmt(e.get('fitted'))} | {'-' if err is None else f'{100 * err:.3g} %'} |"
+            )
+        return "\n".join(rows)
+
+
+class ViewModel:
+    """A scene's frames and the state of the viewer's controls.
+
+    Args:
+      scene: the Scene.
+      level: tessellation level of the drawn cloth (default max(scene level, 8)).
+      base_params: parameters applied to the scene before the sliders' (e.g. a fit's result).
+      target_params: if given, a second, fixed sequence (a fit's target) is simulated with them.
+      fit: the FitData of a result folder.
+      name: a title.
+    """
+
+    def __init__(
+        self,
+        scene,
+        *,
+        level: int | None = None,
+        base_params: Mapping[str, Any] | None = None,
+        target_params: Mapping[str, Any] | None = None,
+        fit: FitData | None = None,
+        name: str = "scene",
+    ):
+        self.scene = apply_params(scene, base_params) if base_params else scene
+        self.level = int(level or max(scene.level, 8))
+        self.fit = fit
+        self.name = name
+        self.faces = np.asarray(
+            surface.grid_faces(surface.vertex_grid_shape(scene.net.rest.shape, self.level,
+                                                         scene.basis))
+        )  # fmt: skip
+        if scene.flip:
+            self.faces = np.ascontiguousarray(self.faces[:, ::-1])
+        self.values = {n: float(param_value(self.scene, n)) for n in SLIDERS}
+        self.values["wind"] = np.asarray(param_value(self.scene, "wind"), np.float64)
+        self.log: list[str] = []
+        self.resim_count = 0
+        self._lock = threading.Lock()
+        nb = len(scene.bodies)
+        dtype = self.scene.net.rest.dtype
+        self._no_thrust = (
+            jnp.zeros((nb, scene.num_frames, 1), dtype),
+            jnp.tile(jnp.asarray([[0.0, 0.0, 1.0]], dtype), (nb, 1)),
+            jnp.zeros((nb,), dtype),
+        )
+        t0 = time.perf_counter()
+        self.frames = self._run(self._params(), self.scene.state, self.scene.bodies)
+        self.compile_s = time.perf_counter() - t0
+        self.target = None
+        if target_params:
+            self.target = self._run(
+                {**self._params(), **{k: jnp.asarray(v) for k, v in target_params.items()}},
+                self.scene.state,
+                self.scene.bodies,
+            )
+
+    # ---- properties -------------------------------------------------------------------------
+    @property
+    def num_frames(self) -> int:
+        return self.scene.num_frames
+
+    @property
+    def dt(self) -> float:
+        return float(self.scene.sim.dt)
+
+    @property
+    def cloth_color(self) -> tuple[int, int, int]:
+        """The scene's diffuse colour as 8-bit sRGB."""
+        return _srgb(self.scene.appearance.diffuse)
+
+    @property
+    def sphere_color(self) -> tuple[int, int, int]:
+        return _srgb(self.scene.appearance.sphere_color)
+
+    def cameras(self) -> list[dict[str, Any]]:
+        """Each scene camera's pose (see `camera_pose`)."""
+        return [camera_pose(c) for c in self.scene.cameras]
+
+    def static_spheres(self) -> list[tuple[np.ndarray, float]]:
+        if self.scene.spheres is None:
+            return []
+        s = self.scene.spheres.batched()
+        return [(np.asarray(c), float(r)) for c, r in zip(s.center, s.radius, strict=True)]
+
+    def planes(self) -> list[tuple[np.ndarray, float]]:
+        cs = self.scene.colliders
+        if cs is None or cs.planes.offset.shape[0] == 0:
+            return []
+        p = cs.planes.batched()
+        return [(np.asarray(n), float(o)) for n, o in zip(p.normal, p.offset, strict=True)]
+
+    def bodies(self) -> list[dict[str, Any]]:
+        """shape, radius, half_extents and mass of each rigid body."""
+        return [
+            {
+                "shape": b.shape,
+                "radius": float(np.reshape(b.radius, ())),
+                "half_extents": np.asarray(b.half_extents),
+                "mass": float(b.mass),
+            }
+            for b in self.scene.bodies
+        ]
+
+    # ---- simulation -------------------------------------------------------------------------
+    def _params(self) -> dict[str, jax.Array]:
+        dtype = self.scene.net.rest.dtype
+        p = {n: jnp.asarray(self.values[n], dtype) for n in SLIDERS}
+        p["wind"] = jnp.asarray(self.values["wind"], dtype)
+        return p
+
+    def _run(self, params, state, bodies, thrust=None) -> Frames:
+        controls, directions, strengths = thrust or self._no_thrust
+        out = _SIMULATE(
+            self.scene, params, state, tuple(bodies), controls, directions, strengths,
+            level=self.level,
+        )  # fmt: skip
+        return _to_numpy(out)
+
+    def _note(self, text: str) -> None:
+        self.log.append(text)
+
+    def resimulate(self, changes: Mapping[str, Any] | None = None) -> float:
+        """Set slider values (name -> value; "wind" (3,)) and re-simulate from the start.
+
+        Returns the wall time in s. If the new run is unstable (non-finite or blown up), the
+        previous values and frames are kept and ValueError is raised naming the values.
+        """
+        with self._lock:
+            old = {k: np.copy(v) for k, v in self.values.items()}
+            for name, value in (changes or {}).items():
+                if name != "wind" and name not in SLIDERS:
+                    raise ValueError(
+                        f"unknown slider {name!r}; allowed: wind, {', '.join(SLIDERS)}"
+                    )
+                self.values[name] = (
+                    np.asarray(value, np.float64) if name == "wind" else float(value)
+                )
+            t0 = time.perf_counter()
+            frames = self._run(self._params(), self.scene.state, self.scene.bodies)
+            wall = time.perf_counter() - t0
+            self.resim_count += 1
+            if not bool(frames.ok):
+                self.values = old
+                msg = (
+                    f"re-simulation {self.resim_count} unstable with {dict(changes or {})}: kept "
+                    "the previous frames (the explicit integrator needs a smaller dt or more "
+                    "substeps for such stiff or light cloth)"
+                )
+                self._note(msg)
+                raise ValueError(msg)
+            self.frames = frames
+            self._note(
+                f"re-simulation {self.resim_count}: {dict(changes or {})} in {1e3 * wall:.0f} ms"
+            )
+            return wall
+
+    def _state_at(self, t: int):
+        f = self.frames
+        state = physics.ClothState(jnp.asarray(f.x[t]), jnp.asarray(f.v[t]))
+        bodies = tuple(
+            dataclasses.replace(
+                b,
+                position=jnp.asarray(f.body_position[t, i], b.position.dtype),
+                orientation=jnp.asarray(f.body_orientation[t, i], b.orientation.dtype),
+                velocity=jnp.asarray(f.body_velocity[t, i], b.velocity.dtype),
+                angular_velocity=jnp.asarray(f.body_angular_velocity[t, i], b.velocity.dtype),
+            )
+            for i, b in enumerate(self.scene.bodies)
+        )
+        return state, bodies
+
+    def _continue_from(self, t: int, state, bodies, thrust=None) -> float:
+        t0 = time.perf_counter()
+        new = self._run(self._params(), state, bodies, thrust)
+        wall = time.perf_counter() - t0
+        self.resim_count += 1
+        if not bool(new.ok):
+            raise ValueError(f"re-simulation {self.resim_count} from frame {t} is unstable")
+        keep = t + 1
+        self.frames = Frames(
+            **{
+                f.name: (
+                    getattr(new, f.name)
+                    if f.name == "ok"
+                    else np.concatenate(
+                        [getattr(self.frames, f.name)[:keep], getattr(new, f.name)[: -keep or None]]
+                    )
+                )
+                for f in dataclasses.fields(Frames)
+            }
+        )
+        return wall
+
+    def _check_body(self, body: int) -> None:
+        if not self.scene.bodies:
+            raise ValueError("the scene has no rigid bodies (add [[bodies]] to the config)")
+        if not 0 <= body < len(self.scene.bodies):
+            raise ValueError(f"body = {body} out of range [0, {len(self.scene.bodies) - 1}]")
+
+    def push(self, body: int, frame: int, delta_v) -> float:
+        """Add delta_v (3,) m/s to a rigid body's velocity after `frame` and re-simulate the
+        frames after it. Returns the wall time in s."""
+        self._check_body(body)
+        frame = int(np.clip(frame, 0, self.num_frames - 1))
+        with self._lock:
+            state, bodies = self._state_at(frame)
+            b = bodies[body]
+            dv = jnp.asarray(delta_v, b.velocity.dtype)
+            bodies = list(bodies)
+            bodies[body] = dataclasses.replace(b, velocity=b.velocity + dv)
+            wall = self._continue_from(frame, state, bodies)
+            self._note(
+                f"re-simulation {self.resim_count}: push body {body} by "
+                f"{np.round(delta_v, 3).tolist()} m/s after frame {frame} in {1e3 * wall:.0f} ms"
+            )
+            return wall
+
+    def fire(self, body: int, frame: int, direction, accel: float, frames: int) -> float:
+        """Fire a thruster at a rigid body's centre for `frames` frames after `frame`: force
+        mass * accel (N) along the world direction (3,) it had when fired (it turns with the body).
+        Re-simulates the frames after `frame`; returns the wall time in s."""
+        self._check_body(body)
+        frame = int(np.clip(frame, 0, self.num_frames - 1))
+        d = np.asarray(direction, np.float64)
+        if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
+            raise ValueError(f"thruster direction must be a finite non-zero 3-vector, got {d}")
+        if not (math.isfinite(accel) and accel >= 0):
+            raise ValueError(f"thruster acceleration must be >= 0 m/s^2, got {accel}")
+        with self._lock:
+            state, bodies = self._state_at(frame)
+            controls, directions, strengths = (np.array(a) for a in self._no_thrust)
+            w, x, y, z = np.asarray(bodies[body].orientation, np.float64)
+            rot = np.array(
+                [
+                    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+                ]
+            )
+            directions[body] = rot.T @ (d / np.linalg.norm(d))  # world -> body frame
+            strengths[body] = float(bodies[body].mass) * accel
+            controls[body, : max(0, int(frames)), 0] = 1.0
+            thrust = tuple(jnp.asarray(a) for a in (controls, directions, strengths))
+            wall = self._continue_from(frame, state, bodies, thrust)
+            self._note(
+                f"re-simulation {self.resim_count}: thruster on body {body}, {accel:g} m/s^2 along "
+                f"{np.round(d, 3).tolist()} for {frames} frames after frame {frame} in "
+                f"{1e3 * wall:.0f} ms"
+            )
+            return wall
+
+    # ---- rendering --------------------------------------------------------------------------
+    def render(self, frame: int, camera: int = 0, shading: str | None = None) -> np.ndarray:
+        """The diffcloth render of `frame` from scene camera `camera` with a shading mode
+        (default the scene's): (H, W, 3) uint8 sRGB."""
+        from diffcloth.render import SHADING_MODES
+
+        shading = shading or self.scene.shading
+        if shading not in SHADING_MODES:
+            raise ValueError(f"shading = {shading!r}; allowed: {', '.join(SHADING_MODES)}")
+        if not 0 <= camera < len(self.scene.cameras):
+            raise ValueError(f"camera = {camera} out of range [0, {len(self.scene.cameras) - 1}]")
+        frame = int(np.clip(frame, 0, self.num_frames - 1))
+        scene = dataclasses.replace(
+            self.scene, cameras=(self.scene.cameras[camera],), shading=shading
+        )
+        centers = []
+        if scene.spheres is not None:
+            centers.append(np.asarray(scene.spheres.batched().center))
+        balls = [i for i, b in enumerate(scene.bodies) if b.shape == "sphere"]
+        if balls:
+            centers.append(self.frames.body_position[frame, balls])
+        c = np.concatenate(centers) if centers else np.zeros((0, 3))
+        dtype = self.scene.net.rest.dtype
+        img = _RENDER(
+            scene, self._params(), jnp.asarray(self.frames.x[frame]), jnp.asarray(c, dtype)
+        )
+        img = np.clip(np.asarray(img, np.float64), 0.0, 1.0) ** (1.0 / 2.2)
+        return (255 * img + 0.5).astype(np.uint8)
+
+
+def _read_fit(folder: Path) -> tuple[dict, dict, np.ndarray]:
+    summary = json.loads((folder / "result.json").read_text())
+    fitted = {n: np.asarray(e["fitted"], np.float64) for n, e in summary["params"].items()}
+    loss = []
+    metrics = folder / "metrics.jsonl"
+    if metrics.exists():
+        for line in metrics.read_text().splitlines():
+            if line.strip():
+                loss.append(float(json.loads(line)["loss"]))
+    return summary, fitted, np.asarray(loss)
+
+
+def load_view(path, *, level: int | None = None, size: int | None = None) -> ViewModel:
+    """A ViewModel from a scene config (TOML) or a fit result folder (config.toml + result.json).
+
+    For a result folder the cloth is simulated with the fitted parameters and the target with the
+    config's [truth] values (when it has them). size: override the render image size (pixels).
+    """
+    from diffcloth.config import ConfigError, load_config
+    from diffcloth.scene import build_scene
+
+    path = Path(path)
+    overrides = {"width": int(size), "height": int(size)} if size else None
+    if path.is_dir():
+        cfg_path, result = path / "config.toml", path / "result.json"
+        if not cfg_path.exists() or not result.exists():
+            raise ConfigError(
+                f"{path} is a folder but not a fit result (it needs config.toml and result.json, "
+                "as `diffcloth fit CONFIG --out DIR` writes)"
+            )
+        config = load_config(cfg_path)
+        scene = build_scene(config, overrides=overrides)
+        summary, fitted, loss = _read_fit(path)
+        truth: dict[str, np.ndarray] = {}
+        if "truth" in config.sections:
+            from diffcloth.config.fit import parse_fit
+
+            truth = dict(parse_fit(config.sections, path).truth)
+        fit = FitData(path, fitted, truth, summary, loss)
+        return ViewModel(
+            scene, level=level, base_params=fitted, target_params=truth or None, fit=fit,
+            name=path.name,
+        )  # fmt: skip
+    if not path.exists():
+        raise ConfigError(f"{path}: no such config file or result folder")
+    scene = build_scene(load_config(path), overrides=overrides)
+    return ViewModel(scene, level=level, name=path.stem)
