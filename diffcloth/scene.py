@@ -186,7 +186,9 @@ def build_scene(
     spheres = phys.colliders.spheres if phys.colliders is not None else None
     if spheres is not None and spheres.center.shape[0] == 0:
         spheres = None
-    textures = render.default_textures(dtype=dtype) if rc.textures == "default" else None
+    textures = None
+    if rc.textures == "default":
+        textures = render.default_textures(tiling=rc.texture_tiling, dtype=dtype)
     bodies, two_way = build_bodies(config, dtype)
     _warn_small_bodies(bodies, config)
     return Scene(

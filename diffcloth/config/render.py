@@ -37,6 +37,7 @@ class RenderConfig:
     frame_stride: int = 1
     flip: bool = True
     textures: str = "none"
+    texture_tiling: tuple = (4.0, 4.0)
     first_frame: int = 1
     push_out_offset: float = 0.0
     draw_planes: bool = False
@@ -90,6 +91,23 @@ class LightsConfig:
     point: tuple[PointLightConfig, ...] = ()
 
 
+def _tiling(t: Mapping[str, Any], default: tuple, where: str) -> tuple:
+    """[render] texture_tiling: two repeat counts > 0 (u, v)."""
+    v = t.get("texture_tiling", default)
+    ok = (
+        isinstance(v, (list, tuple))
+        and len(v) == 2
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+        and all(math.isfinite(x) and 0 < x <= 1024 for x in v)
+    )
+    if not ok:
+        raise ConfigError(
+            f"[{where}] texture_tiling = {v!r} must be two numbers in (0, 1024] (repeats of the "
+            "texture across the cloth along u and v)"
+        )
+    return (float(v[0]), float(v[1]))
+
+
 def parse_render(t: Mapping[str, Any]) -> RenderConfig:
     """Validate [render]."""
     from diffcloth.render import SHADING_MODES
@@ -107,6 +125,7 @@ def parse_render(t: Mapping[str, Any]) -> RenderConfig:
         frame_stride=get_number(t, "frame_stride", d.frame_stride, where=w, lo=1, integer=True),
         flip=get_bool(t, "flip", d.flip, where=w),
         textures=get_choice(t, "textures", d.textures, TEXTURE_CHOICES, where=w),
+        texture_tiling=_tiling(t, d.texture_tiling, w),
         first_frame=get_number(t, "first_frame", d.first_frame, where=w, lo=0, hi=1, integer=True),
         push_out_offset=get_number(t, "push_out_offset", d.push_out_offset, where=w, lo=0),
         draw_planes=get_bool(t, "draw_planes", d.draw_planes, where=w),

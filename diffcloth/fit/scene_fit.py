@@ -147,6 +147,10 @@ def fit(
     if not free:
         raise ValueError("free must name at least one parameter to fit")
     pipeline.check_param_names(free)
+    if "bump_strength" in free:  # warns when the bump map is filtered away at this resolution
+        from diffcloth.render.detail import check_bump_detail
+
+        check_bump_detail(scene, free)
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
     targets = np.asarray(targets)
