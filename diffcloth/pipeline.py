@@ -366,6 +366,7 @@ def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False, 
             plane_color=getattr(scene, "plane_color", render.PLANE_COLOR),
             shadow_maps=maps,
             boxes=boxes,
+            cull=getattr(scene, "cull", False),
         )
         img = img[..., :3]
         if capture is not None:

@@ -49,6 +49,7 @@ class Scene:
       draw_planes, plane_color: static; draw the plane colliders as matte ground of that linear
         albedo (shadow receivers).
       shadow_map_size: static shadow-map size of the lights with shadows (texels).
+      cull: static; object-level frustum culling of the cloth in each camera.
     """
 
     net: Any
@@ -76,6 +77,7 @@ class Scene:
     draw_planes: bool = dataclasses.field(default=False, metadata={"static": True})
     plane_color: tuple = dataclasses.field(default=(0.6, 0.6, 0.6), metadata={"static": True})
     shadow_map_size: int = dataclasses.field(default=256, metadata={"static": True})
+    cull: bool = dataclasses.field(default=False, metadata={"static": True})
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -191,6 +193,12 @@ def build_scene(
         textures = render.default_textures(tiling=rc.texture_tiling, dtype=dtype)
     bodies, two_way = build_bodies(config, dtype)
     _warn_small_bodies(bodies, config)
+    cameras = _build_cameras(config, rc, dtype)
+    level = rc.level
+    if rc.lod == "auto":
+        from diffcloth.surface.lod import auto_level
+
+        level = auto_level(phys.state.x, cameras, net_shape=phys.state.x.shape[:2], basis=rc.basis)
     return Scene(
         net=phys.net,
         sim=phys.sim,
@@ -198,12 +206,12 @@ def build_scene(
         state=phys.state,
         colliders=phys.colliders,
         spheres=spheres,
-        cameras=_build_cameras(config, rc, dtype),
+        cameras=cameras,
         lights=_build_lights(config.lights, dtype),
         appearance=_build_appearance(config.appearance, dtype),
         textures=textures,
         num_frames=phys.num_frames,
-        level=rc.level,
+        level=level,
         basis=rc.basis,
         shading=rc.shading,
         flip=rc.flip,
@@ -216,6 +224,7 @@ def build_scene(
         draw_planes=rc.draw_planes,
         plane_color=tuple(rc.plane_color),
         shadow_map_size=rc.shadow_map_size,
+        cull=rc.cull,
         capture=_build_capture(config.cameras, rc, dtype),
     )
 

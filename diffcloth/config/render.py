@@ -38,6 +38,8 @@ class RenderConfig:
     flip: bool = True
     textures: str = "none"
     texture_tiling: tuple = (4.0, 4.0)
+    lod: str = "fixed"
+    cull: bool = False
     first_frame: int = 1
     push_out_offset: float = 0.0
     draw_planes: bool = False
@@ -126,6 +128,8 @@ def parse_render(t: Mapping[str, Any]) -> RenderConfig:
         flip=get_bool(t, "flip", d.flip, where=w),
         textures=get_choice(t, "textures", d.textures, TEXTURE_CHOICES, where=w),
         texture_tiling=_tiling(t, d.texture_tiling, w),
+        lod=get_choice(t, "lod", d.lod, ("fixed", "auto"), where=w),
+        cull=get_bool(t, "cull", d.cull, where=w),
         first_frame=get_number(t, "first_frame", d.first_frame, where=w, lo=0, hi=1, integer=True),
         push_out_offset=get_number(t, "push_out_offset", d.push_out_offset, where=w, lo=0),
         draw_planes=get_bool(t, "draw_planes", d.draw_planes, where=w),

@@ -234,6 +234,16 @@ def frame_shadow_maps(surface, lights: Lights, *, spheres=None, occluders=None, 
     )
 
 
+def _object_mask(surface, camera: Camera):
+    """(m,) bool: every face True when the surface's bounding sphere meets the frustum, else all
+    False (object-level frustum culling)."""
+    from diffcloth.render.culling import bounding_sphere, frustum_planes, sphere_in_frustum
+
+    center, radius = bounding_sphere(jax.lax.stop_gradient(surface.positions))
+    visible = sphere_in_frustum(center, radius, frustum_planes(camera))
+    return jnp.broadcast_to(visible, (surface.faces.shape[0],))
+
+
 def surface_gbuffer(
     surface,
     camera: Camera,
@@ -246,6 +256,7 @@ def surface_gbuffer(
     max_tiles: int | None = None,
     shadows: ShadowMaps | None = None,
     boxes: BoxPoses | None = None,
+    triangle_mask=None,
 ):
     """Rasterize a Surface into the shader's per-pixel inputs.
 
@@ -258,9 +269,14 @@ def surface_gbuffer(
       from `light_vertices`) for shading="gouraud". With two_sided, back-facing pixels get flipped
       normals, bitangents, face normals and the back side's vertex lighting. With `boxes`, their
       triangles are rasterized with the surface (ids >= the surface's face count).
+      triangle_mask: optional (m,) bool over the surface's faces; False drops a triangle.
     """
     neighbors = _grid_neighbors(surface)
     if boxes is not None:
+        if triangle_mask is not None:
+            triangle_mask = jnp.concatenate(
+                [triangle_mask, jnp.ones((12 * boxes.position.shape[0],), bool)]
+            )
         surface, neighbors = _with_boxes(surface, boxes)
     pos, nrm, faces = surface.positions, surface.normals, surface.faces
     eye_rays = -pixel_rays(camera)[1]  # toward the viewer, per pixel (right for every projection)
@@ -289,6 +305,7 @@ def surface_gbuffer(
         attrs,
         neighbors=neighbors,
         cull_backfaces=cull_backfaces,
+        triangle_mask=triangle_mask,
         max_tiles=max_tiles,
     )
     a = buf.attributes
@@ -335,6 +352,7 @@ def render(
     refraction: str = "shortened",
     draw_spheres: bool = True,
     boxes: BoxPoses | None = None,
+    cull: bool = False,
     antialiased: bool = True,
     cull_backfaces: bool = False,
     two_sided: bool = True,
@@ -363,6 +381,8 @@ def render(
       boxes: optional `boxes.BoxPoses` of one frame: box bodies rasterized with the cloth
         (mutual occlusion, antialiased edges, gradients w.r.t. pose) and shaded like the spheres:
         sphere_color * (ambient + diffuse) + specular, flat per face.
+      cull: object-level frustum culling: when the surface's bounding sphere lies outside the
+        camera's frustum (`culling.sphere_in_frustum`), none of its triangles is drawn.
       antialiased: apply the rasterizer's silhouette antialiasing (gives edge gradients).
       two_sided: light the back side of the cloth with the flipped normal (cloth is thin).
       max_tiles: rasterizer window budget (see `raster.rasterize`).
@@ -408,6 +428,7 @@ def render(
         max_tiles=max_tiles,
         shadows=maps,
         boxes=boxes,
+        triangle_mask=_object_mask(surface, camera) if cull else None,
     )
     img = shade(
         gb,
