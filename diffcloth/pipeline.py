@@ -316,18 +316,25 @@ def simulate(scene, params=None) -> physics.ClothState:
     )
 
 
-def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False, boxes=None):
+def render_frame(
+    scene, x: jax.Array, spheres=None, *, with_mask: bool = False, boxes=None, time=None
+):
     """One control net (rows, cols, 3) -> images (num_cameras, H, W, 3) of the scene.
 
     spheres: this frame's spheres (default: the scene's static spheres).
     boxes: this frame's `render.boxes.BoxPoses` (box bodies, drawn with the cloth; they cast
-    shadows) or None.
+    shadows) or None. time: this frame's time in s, for the scene's [[deform]] waves / ripples
+    (None: no deformation).
     with_mask: also return the visible cloth coverage (num_cameras, H, W) (see `render.render`'s
     return_cloth_mask); returns (images, masks).
     With a `scene.capture`, each camera gets its pose error, background and exposure gain (the
     gain multiplies the whole image, background included; the mask is not scaled)."""
     spheres = scene.spheres if spheres is None else spheres
     surf = surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
+    if getattr(scene, "deform", ()) and time is not None:
+        from diffcloth.surface.deform import apply_deformations
+
+        surf = apply_deformations(surf, scene.deform, time)
     if spheres is not None:
         surf = surface.collide_surface(surf, spheres, offset=scene.push_out_offset)
     capture = getattr(scene, "capture", None)
@@ -401,11 +408,14 @@ def frame_spheres(scene, body_traj: tuple):
     )
 
 
-def render_frames(scene, xs: jax.Array, spheres=None, *, with_mask: bool = False, boxes=None):
+def render_frames(
+    scene, xs: jax.Array, spheres=None, *, with_mask: bool = False, boxes=None, times=None
+):
     """Control nets (T, rows, cols, 3) -> video (num_cameras, T, H, W, 3).
 
     spheres: optional per-frame spheres (center (T, n, 3), radius (n,)), e.g. `frame_spheres`.
     boxes: optional per-frame box poses (leaves (T, b, ...)), e.g. `rendered_boxes`.
+    times: optional (T,) frame times in s for [[deform]] (e.g. `rendered_times`).
     with_mask: also return the cloth coverage video (num_cameras, T, H, W): (video, masks).
     Frames are rendered one after another (`lax.map`) with the frame body checkpointed, so the
     memory of a gradient through a long video is that of a few frames plus the trajectory.
@@ -414,11 +424,11 @@ def render_frames(scene, xs: jax.Array, spheres=None, *, with_mask: bool = False
     centers = None if spheres is None else spheres.center
 
     def one(a):
-        x, c, b = a
+        x, c, b, t = a
         sph = None if c is None else Sphere(c, radius)
-        return render_frame(scene, x, sph, with_mask=with_mask, boxes=b)
+        return render_frame(scene, x, sph, with_mask=with_mask, boxes=b, time=t)
 
-    frames = jax.lax.map(jax.checkpoint(one), (xs, centers, boxes))
+    frames = jax.lax.map(jax.checkpoint(one), (xs, centers, boxes, times))
     return jax.tree_util.tree_map(lambda f: jnp.moveaxis(f, 0, 1), frames)
 
 
@@ -479,6 +489,14 @@ def rendered_states(scene, traj, bodies=()):
     return xs, spheres
 
 
+def rendered_times(scene) -> jax.Array:
+    """(T_video,) time in s of each image (as `rendered_states`: frames k, 2k, ... or 0, k, ...)."""
+    k = scene.frame_stride
+    n = scene.num_frames // k
+    frames = jnp.arange(n) * k + (k if scene.first_frame == 1 else 0)
+    return frames.astype(scene.sim.dt.dtype) * scene.sim.dt
+
+
 def rendered_boxes(scene, bodies=()):
     """Poses of the box bodies at the frames the video shows (as `rendered_states`):
     `render.boxes.BoxPoses` with leaves (T_video, b, ...), or None without boxes."""
@@ -508,7 +526,12 @@ def _simulate_and_render(scene, params, with_mask=False):
     traj, bodies = simulate_all(scene)
     xs, spheres = rendered_states(scene, traj, bodies)
     out = render_frames(
-        scene, xs, spheres, with_mask=with_mask, boxes=rendered_boxes(scene, bodies)
+        scene,
+        xs,
+        spheres,
+        with_mask=with_mask,
+        boxes=rendered_boxes(scene, bodies),
+        times=rendered_times(scene) if getattr(scene, "deform", ()) else None,
     )
     return out, trajectory_status(scene, traj, bodies)
 
@@ -589,7 +612,9 @@ def diagnose(scene, params=None) -> str | None:
             )
     boxes = rendered_boxes(scene, bodies)
     video = np.asarray(
-        jax.jit(lambda sc, x, sp, bx: render_frames(sc, x, sp, boxes=bx))(scene, xs, spheres, boxes)
+        jax.jit(lambda sc, x, sp, bx, t: render_frames(sc, x, sp, boxes=bx, times=t))(
+            scene, xs, spheres, boxes, rendered_times(scene) if scene.deform else None
+        )
     )
     good = np.isfinite(video).reshape(video.shape[0], video.shape[1], -1).all(axis=2)
     if not good.all():

@@ -50,6 +50,8 @@ class Scene:
         albedo (shadow receivers).
       shadow_map_size: static shadow-map size of the lights with shadows (texels).
       cull: static; object-level frustum culling of the cloth in each camera.
+      deform: static tuple of `config.render.DeformConfig` ([[deform]] waves / ripples applied
+        to the rendered surface at each frame's time).
     """
 
     net: Any
@@ -78,6 +80,7 @@ class Scene:
     plane_color: tuple = dataclasses.field(default=(0.6, 0.6, 0.6), metadata={"static": True})
     shadow_map_size: int = dataclasses.field(default=256, metadata={"static": True})
     cull: bool = dataclasses.field(default=False, metadata={"static": True})
+    deform: tuple = dataclasses.field(default=(), metadata={"static": True})
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -225,6 +228,7 @@ def build_scene(
         plane_color=tuple(rc.plane_color),
         shadow_map_size=rc.shadow_map_size,
         cull=rc.cull,
+        deform=tuple(config.deform),
         capture=_build_capture(config.cameras, rc, dtype),
     )
 
