@@ -129,6 +129,7 @@ def main():
             )
             trees[name] = path
         try:
+            commits = {name: _commit(path) for name, path in trees.items()}
             for config in args.configs:
                 runs = {"base": [], "new": []}
                 for _ in range(args.rounds):
@@ -143,7 +144,7 @@ def main():
                             bench="fit_step",
                             config=config,
                             tree=name,
-                            commit=_commit(trees[name]),
+                            commit=commits[name],
                             rounds=args.rounds,
                             **best[name],
                         ),

@@ -345,12 +345,14 @@ def perf_section() -> list[str]:
             "`benchmarks/interactive.py`: one frame of `configs/drape.toml` (40 substeps with "
             "colliders, tessellation to 11,830 vertices, surface collision, render with the "
             "scene's sphere), the whole frame jitted as one function; stage columns time each "
-            "stage jitted alone.",
+            "stage jitted alone (medians; on a loaded machine a stage's median can exceed the "
+            "whole frame's).",
             "",
             _table(
                 [
                     "mode",
                     "frame (ms)",
+                    "frame min (ms)",
                     "fps",
                     "aim fps",
                     "physics",
@@ -362,6 +364,7 @@ def perf_section() -> list[str]:
                     [
                         r["mode"],
                         r["frame_ms"],
+                        r.get("frame_min_ms"),
                         r["fps"],
                         r["aim_fps"],
                         r["physics_ms"],
@@ -388,7 +391,7 @@ def perf_section() -> list[str]:
                     "config",
                     "tree",
                     "commit",
-                    "compile (s)",
+                    "first call (s)",
                     "forward (ms)",
                     "step (ms)",
                     "backward (ms)",

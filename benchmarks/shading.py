@@ -128,7 +128,7 @@ def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
     lights = lights_with(True)
     build = jax.jit(lambda lt: frame_shadow_maps(surf, lt, spheres=spheres, size=map_size))
     row = {"bench": "shading", "mode": "shadow_maps", "size": size, "shadow_map_size": map_size}
-    row["fwd_ms"] = timed(build, lights, repeats=args.repeats)
+    row["fwd_ms"] = _timed_ms(build, lights, repeats=args.repeats)
     row["device"] = device
     print(json.dumps(row), flush=True)
     for mode in modes:
@@ -159,10 +159,10 @@ def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
                 "shadows": shadows,
                 "shadow_map_size": map_size,
             }
-            row["render_fwd_ms"] = timed(jax.jit(render_fn), lights, app, repeats=args.repeats)
+            row["render_fwd_ms"] = _timed_ms(jax.jit(render_fn), lights, app, repeats=args.repeats)
             if not args.no_grad:
                 g = jax.jit(jax.value_and_grad(render_loss))
-                row["render_grad_ms"] = timed(g, (lights, app), repeats=args.repeats)
+                row["render_grad_ms"] = _timed_ms(g, (lights, app), repeats=args.repeats)
             row["device"] = device
             print(json.dumps(row), flush=True)
 

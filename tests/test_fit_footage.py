@@ -217,7 +217,7 @@ def test_per_camera_background_and_exposure(small, frame_fn):
 
 def test_nuisance_ranges_and_constraints():
     sc = scene.build_scene(cfg.parse_config(SMALL), dtype=jnp.float64)
-    with pytest.raises(ValueError, match=r"exposure .* range \[0, inf\]"):
+    with pytest.raises(ValueError, match=r"exposure .*range"):
         pipeline.apply_params(sc, {"exposure": -1.0})
     with pytest.raises(ValueError, match="camera_rotation"):
         pipeline.apply_params(sc, {"camera_rotation": np.full((2, 3), 0.5)})

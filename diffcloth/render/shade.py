@@ -321,7 +321,9 @@ def trace_spheres(origins, directions, spheres: Sphere, lights: Lights, appearan
 
 @functools.lru_cache(maxsize=4)
 def _default_sky(dtype_name: str) -> CubeMap:
-    return sky_cube_map(32, dtype=jnp.dtype(dtype_name))
+    # concrete even when first called under a trace: a cached tracer would leak into the next jit
+    with jax.ensure_compile_time_eval():
+        return sky_cube_map(32, dtype=jnp.dtype(dtype_name))
 
 
 def _check_mode(mode, refraction):

@@ -258,6 +258,9 @@ def _map_visibility(tex, view, proj, texel, zmin, tan_t, is_point, pts, nrm, to_
         """Coverage, depth, bias per tap: (N, T)."""
         du = grid[None, :, 0] * radius[:, None]
         dv = grid[None, :, 1] * radius[:, None]
+        # not materialized: doing so halves the forward lookup (1.44 -> 0.69 s for 2 lights at
+        # 256^2 receivers) but slows value-and-gradient (0.74 -> 0.87-0.98 s at 128^2; loaded
+        # 2-core CPU, same-process A/B), and fits need the gradient
         s = _bilinear(tex, u[:, None] + du, v[:, None] + dv)
         cov = s[..., 1]
         depth = safe_div(s[..., 0], cov)
