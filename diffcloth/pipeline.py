@@ -316,16 +316,25 @@ def simulate(scene, params=None) -> physics.ClothState:
     )
 
 
-def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False):
+def render_frame(
+    scene, x: jax.Array, spheres=None, *, with_mask: bool = False, boxes=None, time=None
+):
     """One control net (rows, cols, 3) -> images (num_cameras, H, W, 3) of the scene.
 
     spheres: this frame's spheres (default: the scene's static spheres).
+    boxes: this frame's `render.boxes.BoxPoses` (box bodies, drawn with the cloth; they cast
+    shadows) or None. time: this frame's time in s, for the scene's [[deform]] waves / ripples
+    (None: no deformation).
     with_mask: also return the visible cloth coverage (num_cameras, H, W) (see `render.render`'s
     return_cloth_mask); returns (images, masks).
     With a `scene.capture`, each camera gets its pose error, background and exposure gain (the
     gain multiplies the whole image, background included; the mask is not scaled)."""
     spheres = scene.spheres if spheres is None else spheres
     surf = surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
+    if getattr(scene, "deform", ()) and time is not None:
+        from diffcloth.surface.deform import apply_deformations
+
+        surf = apply_deformations(surf, scene.deform, time)
     if spheres is not None:
         surf = surface.collide_surface(surf, spheres, offset=scene.push_out_offset)
     capture = getattr(scene, "capture", None)
@@ -333,8 +342,16 @@ def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False):
     if getattr(scene, "draw_planes", False) and scene.colliders is not None:
         planes = split_colliders(scene.colliders)[0]
     # shadow maps of this frame, shared by every camera (None when no light casts shadows)
+    occluders = None
+    if boxes is not None:
+        box_verts, _, box_faces = render.boxes.box_mesh(boxes)
+        occluders = (box_verts, box_faces)
     maps = render.frame_shadow_maps(
-        surf, scene.lights, spheres=spheres, size=getattr(scene, "shadow_map_size", 256)
+        surf,
+        scene.lights,
+        spheres=spheres,
+        occluders=occluders,
+        size=getattr(scene, "shadow_map_size", 256),
     )
     images, masks = [], []
     for i, camera in enumerate(scene.cameras):
@@ -355,6 +372,8 @@ def render_frame(scene, x: jax.Array, spheres=None, *, with_mask: bool = False):
             planes=planes,
             plane_color=getattr(scene, "plane_color", render.PLANE_COLOR),
             shadow_maps=maps,
+            boxes=boxes,
+            cull=getattr(scene, "cull", False),
         )
         img = img[..., :3]
         if capture is not None:
@@ -370,7 +389,7 @@ def frame_spheres(scene, body_traj: tuple):
     """Per-frame spheres to draw: the static ones plus the sphere bodies at each frame.
 
     Returns None (no spheres) or a Sphere with center (T, n, 3) and radius (n,). Box bodies are
-    simulated and act on the cloth but are not drawn.
+    drawn as triangles (`rendered_boxes`).
     """
     balls = [b for b in body_traj if b.shape == "sphere"]
     if not balls:
@@ -389,26 +408,27 @@ def frame_spheres(scene, body_traj: tuple):
     )
 
 
-def render_frames(scene, xs: jax.Array, spheres=None, *, with_mask: bool = False):
+def render_frames(
+    scene, xs: jax.Array, spheres=None, *, with_mask: bool = False, boxes=None, times=None
+):
     """Control nets (T, rows, cols, 3) -> video (num_cameras, T, H, W, 3).
 
     spheres: optional per-frame spheres (center (T, n, 3), radius (n,)), e.g. `frame_spheres`.
+    boxes: optional per-frame box poses (leaves (T, b, ...)), e.g. `rendered_boxes`.
+    times: optional (T,) frame times in s for [[deform]] (e.g. `rendered_times`).
     with_mask: also return the cloth coverage video (num_cameras, T, H, W): (video, masks).
     Frames are rendered one after another (`lax.map`) with the frame body checkpointed, so the
     memory of a gradient through a long video is that of a few frames plus the trajectory.
     """
-    if spheres is None:
-        frames = jax.lax.map(
-            jax.checkpoint(lambda x: render_frame(scene, x, with_mask=with_mask)), xs
-        )
-    else:
-        radius = spheres.radius
-        frames = jax.lax.map(
-            jax.checkpoint(
-                lambda a: render_frame(scene, a[0], Sphere(a[1], radius), with_mask=with_mask)
-            ),
-            (xs, spheres.center),
-        )
+    radius = None if spheres is None else spheres.radius
+    centers = None if spheres is None else spheres.center
+
+    def one(a):
+        x, c, b, t = a
+        sph = None if c is None else Sphere(c, radius)
+        return render_frame(scene, x, sph, with_mask=with_mask, boxes=b, time=t)
+
+    frames = jax.lax.map(jax.checkpoint(one), (xs, centers, boxes, times))
     return jax.tree_util.tree_map(lambda f: jnp.moveaxis(f, 0, 1), frames)
 
 
@@ -469,6 +489,29 @@ def rendered_states(scene, traj, bodies=()):
     return xs, spheres
 
 
+def rendered_times(scene) -> jax.Array:
+    """(T_video,) time in s of each image (as `rendered_states`: frames k, 2k, ... or 0, k, ...)."""
+    k = scene.frame_stride
+    n = scene.num_frames // k
+    frames = jnp.arange(n) * k + (k if scene.first_frame == 1 else 0)
+    return frames.astype(scene.sim.dt.dtype) * scene.sim.dt
+
+
+def rendered_boxes(scene, bodies=()):
+    """Poses of the box bodies at the frames the video shows (as `rendered_states`):
+    `render.boxes.BoxPoses` with leaves (T_video, b, ...), or None without boxes."""
+    if not any(b.shape == "box" for b in bodies):
+        return None
+    k = scene.frame_stride
+    n = scene.num_frames // k
+    poses = render.boxes.box_poses(bodies)
+    if scene.first_frame == 1:
+        return jax.tree_util.tree_map(lambda a: a[k - 1 :: k][:n], poses)
+    first = render.boxes.box_poses(scene.bodies)
+    idx = np.arange(n) * k
+    return jax.tree_util.tree_map(lambda a0, a: jnp.concatenate([a0[None], a])[idx], first, poses)
+
+
 def first_bad_frame(scene, traj, bodies=()) -> int | None:
     """Eager: the first frame whose cloth (or body) state is non-finite or blown up, or None."""
     ok = np.asarray(physics.frames_ok(scene.net, traj, scene.sim, scene.state))
@@ -482,7 +525,14 @@ def _simulate_and_render(scene, params, with_mask=False):
     scene = apply_params(scene, params)
     traj, bodies = simulate_all(scene)
     xs, spheres = rendered_states(scene, traj, bodies)
-    out = render_frames(scene, xs, spheres, with_mask=with_mask)
+    out = render_frames(
+        scene,
+        xs,
+        spheres,
+        with_mask=with_mask,
+        boxes=rendered_boxes(scene, bodies),
+        times=rendered_times(scene) if getattr(scene, "deform", ()) else None,
+    )
     return out, trajectory_status(scene, traj, bodies)
 
 
@@ -560,7 +610,12 @@ def diagnose(scene, params=None) -> str | None:
                 f"surface: non-finite {field} in rendered frame {int(np.argmin(good))} "
                 "(degenerate control net?)"
             )
-    video = np.asarray(jax.jit(render_frames)(scene, xs, spheres))
+    boxes = rendered_boxes(scene, bodies)
+    video = np.asarray(
+        jax.jit(lambda sc, x, sp, bx, t: render_frames(sc, x, sp, boxes=bx, times=t))(
+            scene, xs, spheres, boxes, rendered_times(scene) if scene.deform else None
+        )
+    )
     good = np.isfinite(video).reshape(video.shape[0], video.shape[1], -1).all(axis=2)
     if not good.all():
         cam, frame = np.unravel_index(int(np.argmin(good)), good.shape)

@@ -49,6 +49,9 @@ class Scene:
       draw_planes, plane_color: static; draw the plane colliders as matte ground of that linear
         albedo (shadow receivers).
       shadow_map_size: static shadow-map size of the lights with shadows (texels).
+      cull: static; object-level frustum culling of the cloth in each camera.
+      deform: static tuple of `config.render.DeformConfig` ([[deform]] waves / ripples applied
+        to the rendered surface at each frame's time).
     """
 
     net: Any
@@ -76,6 +79,8 @@ class Scene:
     draw_planes: bool = dataclasses.field(default=False, metadata={"static": True})
     plane_color: tuple = dataclasses.field(default=(0.6, 0.6, 0.6), metadata={"static": True})
     shadow_map_size: int = dataclasses.field(default=256, metadata={"static": True})
+    cull: bool = dataclasses.field(default=False, metadata={"static": True})
+    deform: tuple = dataclasses.field(default=(), metadata={"static": True})
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -186,9 +191,17 @@ def build_scene(
     spheres = phys.colliders.spheres if phys.colliders is not None else None
     if spheres is not None and spheres.center.shape[0] == 0:
         spheres = None
-    textures = render.default_textures(dtype=dtype) if rc.textures == "default" else None
+    textures = None
+    if rc.textures == "default":
+        textures = render.default_textures(tiling=rc.texture_tiling, dtype=dtype)
     bodies, two_way = build_bodies(config, dtype)
     _warn_small_bodies(bodies, config)
+    cameras = _build_cameras(config, rc, dtype)
+    level = rc.level
+    if rc.lod == "auto":
+        from diffcloth.surface.lod import auto_level
+
+        level = auto_level(phys.state.x, cameras, net_shape=phys.state.x.shape[:2], basis=rc.basis)
     return Scene(
         net=phys.net,
         sim=phys.sim,
@@ -196,12 +209,12 @@ def build_scene(
         state=phys.state,
         colliders=phys.colliders,
         spheres=spheres,
-        cameras=_build_cameras(config, rc, dtype),
+        cameras=cameras,
         lights=_build_lights(config.lights, dtype),
         appearance=_build_appearance(config.appearance, dtype),
         textures=textures,
         num_frames=phys.num_frames,
-        level=rc.level,
+        level=level,
         basis=rc.basis,
         shading=rc.shading,
         flip=rc.flip,
@@ -214,6 +227,8 @@ def build_scene(
         draw_planes=rc.draw_planes,
         plane_color=tuple(rc.plane_color),
         shadow_map_size=rc.shadow_map_size,
+        cull=rc.cull,
+        deform=tuple(config.deform),
         capture=_build_capture(config.cameras, rc, dtype),
     )
 

@@ -51,12 +51,14 @@ from diffcloth.config.physics import (
 )
 from diffcloth.config.render import (
     CameraConfig,
+    DeformConfig,
     DirectionalLightConfig,
     LightsConfig,
     PointLightConfig,
     RenderConfig,
     parse_appearance,
     parse_cameras,
+    parse_deform,
     parse_lights,
     parse_render,
 )
@@ -95,7 +97,7 @@ __all__ = [
 
 SECTIONS = (
     "net", "material", "sim", "spheres", "planes",  # physics
-    "render", "camera", "cameras", "lights", "appearance",  # render
+    "render", "camera", "cameras", "lights", "appearance", "deform",  # render
     "bodies", "coupling",  # rigid bodies
     "fit", "truth",  # fitting
 )  # fmt: skip
@@ -121,6 +123,7 @@ class Config:
         default_factory=lambda: types.MappingProxyType({})
     )
     bodies: BodiesConfig = BodiesConfig()
+    deform: tuple[DeformConfig, ...] = ()
     fit: FitSettings | None = None
     sections: Mapping[str, Any] = dataclasses.field(
         default_factory=lambda: types.MappingProxyType({}), compare=False, hash=False
@@ -146,6 +149,7 @@ def parse_config(data: Mapping[str, Any], path: str | None = None) -> Config:
         lights=parse_lights(data.get("lights", {})),
         appearance=types.MappingProxyType(parse_appearance(data.get("appearance", {}))),
         bodies=parse_bodies_section(data),
+        deform=parse_deform(data),
         fit=parse_fit(data, base_dir) if ("fit" in data or "truth" in data) else None,
         sections=types.MappingProxyType(
             {k: data[k] for k in SECTIONS if k in data and k not in ("net", "material", "sim")}
@@ -200,5 +204,6 @@ def schema() -> dict[str, tuple[str, ...]]:
         "appearance": appearance_fields(),
         "bodies": tuple(sorted(BODY_KEYS)),
         "coupling": ("two_way",),
+        "deform": dataclass_keys(DeformConfig),
         "fit": fit_keys,
     }

@@ -37,6 +37,9 @@ class RenderConfig:
     frame_stride: int = 1
     flip: bool = True
     textures: str = "none"
+    texture_tiling: tuple = (4.0, 4.0)
+    lod: str = "fixed"
+    cull: bool = False
     first_frame: int = 1
     push_out_offset: float = 0.0
     draw_planes: bool = False
@@ -90,6 +93,23 @@ class LightsConfig:
     point: tuple[PointLightConfig, ...] = ()
 
 
+def _tiling(t: Mapping[str, Any], default: tuple, where: str) -> tuple:
+    """[render] texture_tiling: two repeat counts > 0 (u, v)."""
+    v = t.get("texture_tiling", default)
+    ok = (
+        isinstance(v, (list, tuple))
+        and len(v) == 2
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+        and all(math.isfinite(x) and 0 < x <= 1024 for x in v)
+    )
+    if not ok:
+        raise ConfigError(
+            f"[{where}] texture_tiling = {v!r} must be two numbers in (0, 1024] (repeats of the "
+            "texture across the cloth along u and v)"
+        )
+    return (float(v[0]), float(v[1]))
+
+
 def parse_render(t: Mapping[str, Any]) -> RenderConfig:
     """Validate [render]."""
     from diffcloth.render import SHADING_MODES
@@ -107,6 +127,9 @@ def parse_render(t: Mapping[str, Any]) -> RenderConfig:
         frame_stride=get_number(t, "frame_stride", d.frame_stride, where=w, lo=1, integer=True),
         flip=get_bool(t, "flip", d.flip, where=w),
         textures=get_choice(t, "textures", d.textures, TEXTURE_CHOICES, where=w),
+        texture_tiling=_tiling(t, d.texture_tiling, w),
+        lod=get_choice(t, "lod", d.lod, ("fixed", "auto"), where=w),
+        cull=get_bool(t, "cull", d.cull, where=w),
         first_frame=get_number(t, "first_frame", d.first_frame, where=w, lo=0, hi=1, integer=True),
         push_out_offset=get_number(t, "push_out_offset", d.push_out_offset, where=w, lo=0),
         draw_planes=get_bool(t, "draw_planes", d.draw_planes, where=w),
@@ -240,3 +263,68 @@ def parse_appearance(t: Mapping[str, Any]) -> Mapping[str, Any]:
                 f"[appearance] {key} = {value!r} must be a number or a list of numbers"
             )
     return dict(t)
+
+
+DEFORM_KINDS = ("waves", "ripples")
+
+
+@dataclasses.dataclass(frozen=True)
+class DeformConfig:
+    """One [[deform]] entry: a travelling wave or a circular ripple in the cloth's uv space
+    (unitless [0, 1] over the cloth), displacing the rendered vertices along their normals by
+    h(uv, t) in m at the frame's time t (`surface.deform`)."""
+
+    kind: str = "waves"
+    amplitude: float = 0.01
+    wavelength: float = 0.25
+    speed: float = 0.0
+    direction: tuple = (1.0, 0.0)
+    phase: float = 0.0
+    center: tuple = (0.5, 0.5)
+    decay: float = 0.0
+
+
+def _pair(t, key, default, where, lo=-1e6, hi=1e6):
+    v = t.get(key, default)
+    ok = (
+        isinstance(v, (list, tuple))
+        and len(v) == 2
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+        and all(math.isfinite(x) and lo <= x <= hi for x in v)
+    )
+    if not ok:
+        raise ConfigError(f"[{where}] {key} = {v!r} must be two numbers in [{lo:g}, {hi:g}]")
+    return (float(v[0]), float(v[1]))
+
+
+def parse_deform(data: Mapping[str, Any]) -> tuple:
+    """Validate [[deform]] entries (any number) into DeformConfig."""
+    entries = data.get("deform", [])
+    if not isinstance(entries, list):
+        raise ConfigError("[[deform]] must be an array of tables ([[deform]] per entry)")
+    out = []
+    for i, t in enumerate(entries):
+        w = f"deform #{i}"
+        if not isinstance(t, Mapping):
+            raise ConfigError(f"[{w}] must be a table, got {t!r}")
+        check_keys(t, dataclass_keys(DeformConfig), w)
+        d = DeformConfig()
+        kind = get_choice(t, "kind", d.kind, DEFORM_KINDS, where=w)
+        direction = _pair(t, "direction", d.direction, w)
+        if direction[0] == 0 and direction[1] == 0:
+            raise ConfigError(f"[{w}] direction = [0, 0] must be a non-zero [du, dv]")
+        out.append(
+            DeformConfig(
+                kind=kind,
+                amplitude=get_number(t, "amplitude", d.amplitude, where=w, lo=-1.0, hi=1.0),
+                wavelength=get_number(
+                    t, "wavelength", d.wavelength, where=w, lo=0, hi=1e3, lo_inclusive=False
+                ),
+                speed=get_number(t, "speed", d.speed, where=w, lo=-1e3, hi=1e3),
+                direction=direction,
+                phase=get_number(t, "phase", d.phase, where=w, lo=-1e3, hi=1e3),
+                center=_pair(t, "center", d.center, w),
+                decay=get_number(t, "decay", d.decay, where=w, lo=0, hi=1e3),
+            )
+        )
+    return tuple(out)

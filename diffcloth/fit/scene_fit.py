@@ -239,6 +239,10 @@ def fit(
     free = [n for n in free if n not in tie_set.targets]
     if not free:
         raise ValueError(f"every free parameter is tied ({tied}); leave at least one free")
+    if "bump_strength" in free:  # warns when the bump map is filtered away at this resolution
+        from diffcloth.render.detail import check_bump_detail
+
+        check_bump_detail(scene, free)
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
     targets = np.asarray(targets)

@@ -187,11 +187,14 @@ def write_obj_sequence(
     return paths
 
 
-def read_obj(path) -> dict[str, np.ndarray]:
+def read_obj(path, *, smooth: bool = False) -> dict[str, np.ndarray]:
     """Read back a triangle OBJ as written by `write_obj` (for tests and round trips).
 
     Returns a dict with "positions" (n, 3), "faces" (m, 3) 0-based vertex indices, and, if present,
-    "uv" (k, 2), "normals" (k, 3), "face_uv" and "face_normals" (m, 3) 0-based.
+    "uv" (k, 2), "normals" (k, 3), "face_uv" and "face_normals" (m, 3) 0-based. With smooth=True
+    also "vertex_normals" (n, 3): area-weighted averages of the face normals
+    (`render.mesh.vertex_normals`), one per position, for smooth shading of meshes without normals
+    (`render.mesh.mesh_surface(out["positions"], out["faces"], normals=out["vertex_normals"])`).
     """
     v, vt, vn, fv, ft, fn = [], [], [], [], [], []
     for line in Path(path).read_text().splitlines():
@@ -228,4 +231,8 @@ def read_obj(path) -> dict[str, np.ndarray]:
         out["face_uv"] = np.asarray(ft, int)
     if fn:
         out["face_normals"] = np.asarray(fn, int)
+    if smooth:
+        from diffcloth.render.mesh import vertex_normals
+
+        out["vertex_normals"] = np.asarray(vertex_normals(out["positions"], out["faces"]))
     return out

@@ -2,38 +2,66 @@
 # ruff: noqa: F401  (re-exports)
 
 # viewing, culling, rasterizer, analytic spheres
+# plain meshes (smooth vertex normals) and box bodies as triangles
+from diffcloth.render import boxes, mesh
+from diffcloth.render.boxes import BoxPoses, box_triangles
 from diffcloth.render.camera import (
     Camera,
+    axonometric_view,
     cabinet,
     camera_from_matrices,
     cavalier,
+    dimetric_view,
     eye_position,
+    front_view,
     frustum,
+    isometric_view,
     look_at,
     make_camera,
     oblique,
     orthographic,
     perspective,
     pixel_rays,
+    side_view,
+    top_view,
+    trimetric_view,
     view_direction,
     view_from_vrp,
 )
-from diffcloth.render.camera import axonometric_view, dimetric_view, isometric_view, trimetric_view
-from diffcloth.render.camera import front_view, side_view, top_view
 from diffcloth.render.capture import Capture, make_capture, perturb_camera
 from diffcloth.render.culling import facing_camera, frustum_planes, sphere_in_frustum
-from diffcloth.render.raster import Fragments, GBuffer, antialias, composite, edge_neighbors
-from diffcloth.render.raster import interpolate, rasterize, rasterize_gbuffer, render_mesh
-from diffcloth.render.spheres import raycast_spheres
 
 # shading (lights, appearance, textures, G-buffer shading modes); `shade` stays the module name
-from diffcloth.render.lights import Appearance, Light, Lights, make_appearance, make_lights
-from diffcloth.render.lights import appearance_fields
-from diffcloth.render.render import render, surface_gbuffer  # the function shadows its module
-from diffcloth.render.render import PLANE_COLOR, frame_shadow_maps
-from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility, sphere_visibility
+from diffcloth.render.lights import (
+    Appearance,
+    Light,
+    Lights,
+    appearance_fields,
+    make_appearance,
+    make_lights,
+)
+from diffcloth.render.mesh import mesh_surface, vertex_normals
+from diffcloth.render.raster import (
+    Fragments,
+    GBuffer,
+    antialias,
+    composite,
+    edge_neighbors,
+    interpolate,
+    rasterize,
+    rasterize_gbuffer,
+    render_mesh,
+)
+from diffcloth.render.render import (  # the function shadows its module
+    PLANE_COLOR,
+    frame_shadow_maps,
+    render,
+    surface_gbuffer,
+)
 from diffcloth.render.shade import MODES as SHADING_MODES
 from diffcloth.render.shade import ShadingBuffer, light_vertices
+from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility, sphere_visibility
+from diffcloth.render.spheres import raycast_spheres
 from diffcloth.render.textures import (
     CubeMap,
     Textures,

@@ -7,12 +7,14 @@ Surface --rasterize_gbuffer--> per-pixel attributes --shade--> premultiplied RGB
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from diffcloth._math import materialize, safe_norm, safe_normalize
+from diffcloth.render.boxes import BoxPoses, box_mesh, box_neighbors_np
 from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
@@ -121,6 +123,40 @@ def _sphere_layer(
     return rgba, depth
 
 
+class _Combined(NamedTuple):
+    positions: jax.Array
+    normals: jax.Array
+    tangents: jax.Array
+    bitangents: jax.Array
+    uv: jax.Array
+    faces: jax.Array
+
+
+def _with_boxes(surface, boxes: BoxPoses):
+    """The cloth surface and the boxes' triangles as one mesh (box faces after the cloth's), and
+    its edge-neighbour table (boxes: `boxes.box_neighbors_np`)."""
+    from diffcloth.render.mesh import mesh_surface
+
+    verts, nrm, faces = box_mesh(boxes)
+    box = mesh_surface(verts, faces, normals=nrm)
+    n, m = surface.positions.shape[0], surface.faces.shape[0]
+    cloth_nb = _grid_neighbors(surface)
+    if cloth_nb is None:
+        cloth_nb = edge_neighbors(surface.faces)
+    box_nb = box_neighbors_np(boxes.position.shape[0])
+    nb = jnp.concatenate([cloth_nb, jnp.asarray(np.where(box_nb >= 0, box_nb + m, -1))])
+    cat = lambda a, b: jnp.concatenate([a, b.astype(a.dtype)])
+    combined = _Combined(
+        positions=cat(surface.positions, box.positions),
+        normals=cat(surface.normals, box.normals),
+        tangents=cat(surface.tangents, box.tangents),
+        bitangents=cat(surface.bitangents, box.bitangents),
+        uv=cat(surface.uv, box.uv),
+        faces=jnp.concatenate([surface.faces.astype(jnp.int32), box.faces + n]),
+    )
+    return combined, nb.astype(jnp.int32)
+
+
 def _plane_layer(
     camera: Camera,
     planes: Plane,
@@ -173,7 +209,7 @@ def safe_div_neg(side, nd):
 def _occluder_mesh(surface, occluders):
     """(positions, faces, neighbors) of the cloth plus extra occluder triangles (boxes...)."""
     pos, faces = surface.positions, jnp.asarray(surface.faces).astype(jnp.int32)
-    nbr = _grid_neighbors(getattr(surface, "grid_shape", None))
+    nbr = _grid_neighbors(surface)
     if nbr is None:
         nbr = edge_neighbors(faces)
     if occluders is None:
@@ -198,6 +234,16 @@ def frame_shadow_maps(surface, lights: Lights, *, spheres=None, occluders=None, 
     )
 
 
+def _object_mask(surface, camera: Camera):
+    """(m,) bool: every face True when the surface's bounding sphere meets the frustum, else all
+    False (object-level frustum culling)."""
+    from diffcloth.render.culling import bounding_sphere, frustum_planes, sphere_in_frustum
+
+    center, radius = bounding_sphere(jax.lax.stop_gradient(surface.positions))
+    visible = sphere_in_frustum(center, radius, frustum_planes(camera))
+    return jnp.broadcast_to(visible, (surface.faces.shape[0],))
+
+
 def surface_gbuffer(
     surface,
     camera: Camera,
@@ -209,6 +255,8 @@ def surface_gbuffer(
     cull_backfaces: bool = False,
     max_tiles: int | None = None,
     shadows: ShadowMaps | None = None,
+    boxes: BoxPoses | None = None,
+    triangle_mask=None,
 ):
     """Rasterize a Surface into the shader's per-pixel inputs.
 
@@ -219,8 +267,17 @@ def surface_gbuffer(
       (ShadingBuffer, raster GBuffer (ids, depth, crossings for `antialias`), eye vectors (H, W, 3)
       toward the viewer). face_normal is filled for shading="flat", color (per-vertex lighting
       from `light_vertices`) for shading="gouraud". With two_sided, back-facing pixels get flipped
-      normals, bitangents, face normals and the back side's vertex lighting.
+      normals, bitangents, face normals and the back side's vertex lighting. With `boxes`, their
+      triangles are rasterized with the surface (ids >= the surface's face count).
+      triangle_mask: optional (m,) bool over the surface's faces; False drops a triangle.
     """
+    neighbors = _grid_neighbors(surface)
+    if boxes is not None:
+        if triangle_mask is not None:
+            triangle_mask = jnp.concatenate(
+                [triangle_mask, jnp.ones((12 * boxes.position.shape[0],), bool)]
+            )
+        surface, neighbors = _with_boxes(surface, boxes)
     pos, nrm, faces = surface.positions, surface.normals, surface.faces
     eye_rays = -pixel_rays(camera)[1]  # toward the viewer, per pixel (right for every projection)
     attrs = {
@@ -246,8 +303,9 @@ def surface_gbuffer(
         faces,
         camera,
         attrs,
-        neighbors=_grid_neighbors(surface),
+        neighbors=neighbors,
         cull_backfaces=cull_backfaces,
+        triangle_mask=triangle_mask,
         max_tiles=max_tiles,
     )
     a = buf.attributes
@@ -293,6 +351,8 @@ def render(
     background=(0.0, 0.0, 0.0),
     refraction: str = "shortened",
     draw_spheres: bool = True,
+    boxes: BoxPoses | None = None,
+    cull: bool = False,
     antialiased: bool = True,
     cull_backfaces: bool = False,
     two_sided: bool = True,
@@ -318,6 +378,11 @@ def render(
       background: (3,) colour under uncovered pixels, or None for a premultiplied transparent
         result.
       refraction: "shortened" (seed) or "snell" for mode "reflect_refract".
+      boxes: optional `boxes.BoxPoses` of one frame: box bodies rasterized with the cloth
+        (mutual occlusion, antialiased edges, gradients w.r.t. pose) and shaded like the spheres:
+        sphere_color * (ambient + diffuse) + specular, flat per face.
+      cull: object-level frustum culling: when the surface's bounding sphere lies outside the
+        camera's frustum (`culling.sphere_in_frustum`), none of its triangles is drawn.
       antialiased: apply the rasterizer's silhouette antialiasing (gives edge gradients).
       two_sided: light the back side of the cloth with the flipped normal (cloth is thin).
       max_tiles: rasterizer window budget (see `raster.rasterize`).
@@ -345,6 +410,9 @@ def render(
     if shading not in MODES:
         raise ValueError(f"shading must be one of {MODES}, got {shading!r}")
     maps = shadow_maps
+    if boxes is not None and occluders is None:
+        box_verts, _, box_faces = box_mesh(boxes)
+        occluders = (box_verts, box_faces)  # boxes cast shadows too
     if maps is None and lights.casts_shadows:
         maps = frame_shadow_maps(
             surface, lights, spheres=spheres, occluders=occluders, size=shadow_map_size
@@ -359,6 +427,8 @@ def render(
         cull_backfaces=cull_backfaces,
         max_tiles=max_tiles,
         shadows=maps,
+        boxes=boxes,
+        triangle_mask=_object_mask(surface, camera) if cull else None,
     )
     img = shade(
         gb,
@@ -370,12 +440,28 @@ def render(
         spheres=spheres,
         refraction=refraction,
     )
+    if boxes is not None:
+        # box pixels: the spheres' material (Blinn-Phong with sphere_color), flat face normals
+        on_box = (buf.surface_id >= surface.faces.shape[0])[..., None]
+        diffuse, specular = blinn_phong(
+            gb.normal, eye_rays, gb.position, lights, appearance, gb.visibility
+        )
+        amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
+        albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
+        spec = jnp.reshape(appearance.specular, (1, 1, 3))
+        box_rgb = (albedo * (amb + diffuse) + spec * specular) * gb.mask[..., None]
+        box_rgba = jnp.concatenate([box_rgb, gb.mask[..., None]], axis=-1).astype(img.dtype)
+        cloth_alpha = jnp.where(on_box[..., 0], 0.0, img[..., 3])
+        img = jnp.concatenate([jnp.where(on_box, box_rgba, img), cloth_alpha[..., None]], -1)
     if antialiased:
         # computed once: fused into antialias's shifted neighbour reads, the shading (texture
         # gathers, bump maps) would be recomputed for each neighbour and channel (with the
         # materializations in shade: minnaert render 265 -> 46 ms at 256^2, benchmarks/shading.py)
         img = antialias(materialize(img), buf)
-    cloth_mask = img[..., 3]
+    if boxes is not None:  # the extra channel: coverage of the cloth alone
+        img, cloth_mask = img[..., :4], img[..., 4]
+    else:
+        cloth_mask = img[..., 3]
     if spheres is not None and draw_spheres:
         sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from diffcloth._math import safe_norm, safe_normalize
 from diffcloth.surface.tessellate import Surface, grid_frames
 
-__all__ = ["waves", "ripples", "displace_along_normals"]
+__all__ = ["waves", "ripples", "displace_along_normals", "apply_deformations"]
 
 
 def _check_positive(name: str, value) -> None:
@@ -92,3 +92,37 @@ def displace_along_normals(surface: Surface, height) -> Surface:
     pos = surface.positions + height[:, None] * surface.normals
     n, t, b = grid_frames(pos, surface.grid_shape, flip=surface.flipped)
     return dataclasses.replace(surface, positions=pos, normals=n, tangents=t, bitangents=b)
+
+
+def apply_deformations(surface: Surface, entries, time) -> Surface:
+    """Sum of the [[deform]] entries' heights at `time` (s), on the surface's uv, displaced along
+    the normals (`displace_along_normals`). entries: objects with the fields of
+    `config.render.DeformConfig` (kind "waves" or "ripples"); none: the surface unchanged."""
+    if not entries:
+        return surface
+    uv = surface.uv
+    h = jnp.zeros(uv.shape[:1], surface.positions.dtype)
+    for e in entries:
+        if e.kind == "waves":
+            h = h + waves(
+                uv,
+                time,
+                amplitude=e.amplitude,
+                wavelength=e.wavelength,
+                speed=e.speed,
+                direction=e.direction,
+                phase=e.phase,
+            )
+        elif e.kind == "ripples":
+            h = h + ripples(
+                uv,
+                time,
+                amplitude=e.amplitude,
+                wavelength=e.wavelength,
+                speed=e.speed,
+                center=e.center,
+                decay=e.decay,
+            )
+        else:
+            raise ValueError(f"deform kind must be 'waves' or 'ripples', got {e.kind!r}")
+    return displace_along_normals(surface, h)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["focal_length_pixels", "projected_size_pixels", "select_level"]
+__all__ = ["auto_level", "focal_length_pixels", "projected_size_pixels", "select_level"]
 
 
 def focal_length_pixels(fov_y_degrees: float, height_pixels: int) -> float:
@@ -81,3 +81,53 @@ def select_level(
     if power_of_two and level > 1:
         level = 1 << (level - 1).bit_length()
     return int(min(max(level, min_level), max_level))
+
+
+def auto_level(
+    points,
+    cameras,
+    *,
+    net_shape,
+    basis: str = "bspline",
+    pixels_per_segment: float = 4.0,
+    min_level: int = 2,
+    max_level: int = 16,
+) -> int:
+    """Tessellation level for `[render] lod = "auto"`: the largest `select_level` over the
+    cameras for the bounding sphere of `points` (e.g. the initial control net, (..., 3) in m).
+
+    Perspective cameras use their eye distance and focal length in pixels (projection[1, 1] H / 2);
+    parallel projections use the projected diameter 2 r projection[1, 1] H / 2 directly.
+    """
+    import numpy as np
+
+    from diffcloth.surface import basis as _basis
+
+    p = np.asarray(points, float).reshape(-1, 3)
+    center = 0.5 * (p.min(0) + p.max(0))
+    radius = float(np.max(np.linalg.norm(p - center, axis=-1)))
+    patches = max(
+        _basis.num_patches(int(net_shape[0]), basis), _basis.num_patches(int(net_shape[1]), basis)
+    )
+    best = min_level
+    for cam in cameras:
+        focal = float(np.asarray(cam.projection)[1, 1]) * cam.height / 2.0
+        if cam.is_perspective:
+            view = np.asarray(cam.view)
+            eye = -view[:3, :3].T @ view[:3, 3]
+            level = select_level(
+                radius,
+                float(np.linalg.norm(eye - center)),
+                focal,
+                num_patches=patches,
+                pixels_per_segment=pixels_per_segment,
+                min_level=min_level,
+                max_level=max_level,
+            )
+        else:
+            size = 2.0 * radius * focal
+            level = math.ceil(size / pixels_per_segment / patches)
+            level = 1 << max(level - 1, 0).bit_length() if level > 1 else level
+            level = min(max(level, min_level), max_level)
+        best = max(best, int(level))
+    return best
