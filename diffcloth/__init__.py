@@ -1,11 +1,11 @@
 """diffcloth: differentiable cloth simulation and rendering in JAX.
 
-    control-net physics -> patch tessellation -> vertex collision -> rasterize + shade -> image loss
+control-net physics -> patch tessellation -> vertex collision -> rasterize + shade -> image loss
 
-    import diffcloth as dc
-    scene = dc.load_scene("configs/drape_fit.toml")
-    video = dc.simulate_and_render(scene, {"bend": 2e-3})        # (cameras, T, H, W, 3)
-    result = dc.fit.fit(scene, video, free=["bend"], steps=50)   # FitResult
+import diffcloth as dc
+scene = dc.load_scene("configs/drape_fit.toml")
+video = dc.simulate_and_render(scene, {"bend": 2e-3})        # (cameras, T, H, W, 3)
+result = dc.fit.fit(scene, video, free=["bend"], steps=50)   # FitResult
 """
 
 from diffcloth import fit, io, physics, render, surface

@@ -25,8 +25,9 @@ def check_config(path, command: str = "render"):
         raise ConfigError(f"{path}: missing [fit] section")
     multistart = config.fit.multistart if command == "fit" else 1
     memory.check_memory(
-        memory.estimate_memory(memory.JobSizes.from_config(config), command,
-                               multistart=multistart),  # fmt: skip
+        memory.estimate_memory(
+            memory.JobSizes.from_config(config), command, multistart=multistart
+        ),  # fmt: skip
         f"{command} {path}",
     )
     if command == "simulate":

@@ -88,7 +88,7 @@ def load_targets(settings, sc) -> np.ndarray:
                 f"[fit] target_frames = [{first}, {stop}] but {str(folder)!r} has only "
                 f"{len(files)} matching images"
             )
-        chosen = files[first:stop:settings.target_stride]
+        chosen = files[first : stop : settings.target_stride]
         if len(chosen) != T:
             more = "missing" if len(chosen) < T else "extra"
             raise cfg.ConfigError(
@@ -168,7 +168,7 @@ def _status_line(status: str) -> str:
 def _method_section(result, settings) -> str:
     """report.md: which method ran, its stages and evaluation count."""
     text = f"{_METHOD_NAMES[result.method]}"
-    text += " (chosen by method = \"auto\")" if settings.method == "auto" else ""
+    text += ' (chosen by method = "auto")' if settings.method == "auto" else ""
     text += f"; {result.evaluations} loss/Jacobian evaluations." if result.evaluations else "."
     if result.stages:
         text += "\n\n| stage | LM steps | final loss of the stage | status |\n|---|---|---|---|\n"
@@ -321,8 +321,7 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
         optimizer = _optimizer(settings.learning_rate, settings.schedule, settings.steps)
     if progress:
         print(
-            f"  method: {_METHOD_NAMES[method]}"
-            + (" (auto)" if settings.method == "auto" else ""),
+            f"  method: {_METHOD_NAMES[method]}" + (" (auto)" if settings.method == "auto" else ""),
             flush=True,
         )
     result = dcfit.fit(

@@ -50,7 +50,9 @@ def make_sphere(center, radius, dtype=None) -> Sphere:
     if not np.all(np.isfinite(c)):
         raise ValueError(f"sphere center must be finite, got {c.tolist()}")
     if not np.all(np.isfinite(r)) or np.any(r < 0):
-        raise ValueError(f"sphere radius must be finite and >= 0 (allowed range [0, inf)), got {r.tolist()}")
+        raise ValueError(
+            f"sphere radius must be finite and >= 0 (allowed range [0, inf)), got {r.tolist()}"
+        )
     dtype = dtype or jnp.zeros(()).dtype
     return Sphere(jnp.asarray(c, dtype), jnp.asarray(r, dtype))
 

@@ -41,13 +41,15 @@ def table_row(name: str, summary: dict, link: str | None) -> dict:
         return "; ".join(f"{k} {fmt(e[key])}" for k, e in p.items() if e.get(key) is not None)
 
     row = report.results_row(name, summary, link)
-    row.update({
-        "true": col("true"),
-        "initial": col("initial"),
-        "fitted": col("fitted"),
-        "relative error": col("relative_error", lambda e: f"{100 * e:.2g} %"),
-        "total (s)": f"{summary.get('total_s', float('nan')):.0f}",
-    })
+    row.update(
+        {
+            "true": col("true"),
+            "initial": col("initial"),
+            "fitted": col("fitted"),
+            "relative error": col("relative_error", lambda e: f"{100 * e:.2g} %"),
+            "total (s)": f"{summary.get('total_s', float('nan')):.0f}",
+        }
+    )
     return row
 
 
@@ -59,17 +61,26 @@ def add_row(name: str, summary: dict, smoke: bool) -> None:
     if not smoke:
         link = f"{name.split(' ')[0]}/report.md"
         try:
-            report.append_results_row(README, table_row(name, summary, link),
-                                      title="Experiment results", intro=INTRO)
+            report.append_results_row(
+                README, table_row(name, summary, link), title="Experiment results", intro=INTRO
+            )
         except ValueError:  # a table with only the standard columns: add the standard row
             report.append_results_row(README, report.results_row(name, summary, link))
 
 
-def run_experiment(name: str, config_path, *, smoke: bool = False, title: str | None = None,
-                   extra_sections=None) -> dict:
+def run_experiment(
+    name: str, config_path, *, smoke: bool = False, title: str | None = None, extra_sections=None
+) -> dict:
     """Fit one config into results/<name>/ (results/smoke/<name>/ for smoke) and add its row."""
-    summary = run_fit_config(config_path, out_dir(name, smoke), smoke=smoke, progress=not smoke,
-                             title=title, extra_sections=extra_sections, overwrite=True)
+    summary = run_fit_config(
+        config_path,
+        out_dir(name, smoke),
+        smoke=smoke,
+        progress=not smoke,
+        title=title,
+        extra_sections=extra_sections,
+        overwrite=True,
+    )
     add_row(name, summary, smoke)
     return summary
 

@@ -24,8 +24,9 @@ def main(config_path=None, *, smoke: bool = False) -> dict:
     """Run the fit of config_path (default CONFIG); returns the result.json summary."""
     config_path = Path(config_path or Path(__file__).resolve().parents[1] / CONFIG)
     name = config_path.stem
-    return run_experiment(name, config_path, smoke=smoke,
-                          title="Appearance: minnaert_k, bump_strength, diffuse")
+    return run_experiment(
+        name, config_path, smoke=smoke, title="Appearance: minnaert_k, bump_strength, diffuse"
+    )
 
 
 if __name__ == "__main__":

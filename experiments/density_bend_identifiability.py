@@ -24,8 +24,7 @@ def main(config_path=None, *, smoke: bool = False) -> dict:
     """Run the fit of config_path (default CONFIG); returns the result.json summary."""
     config_path = Path(config_path or Path(__file__).resolve().parents[1] / CONFIG)
     name = config_path.stem
-    return run_experiment(name, config_path, smoke=smoke,
-                          title="Density and bend from one camera")
+    return run_experiment(name, config_path, smoke=smoke, title="Density and bend from one camera")
 
 
 if __name__ == "__main__":

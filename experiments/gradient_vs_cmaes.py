@@ -57,8 +57,9 @@ def run_cmaes(loss, x0_raw: dict, budget: int, sigma0: float = 0.5, seed: int = 
 
     x0 = np.concatenate([np.ravel(x0_raw[n]) for n in names])
     popsize = max(4, 4 + int(3 * np.log(x0.size)))
-    es = cma.CMAEvolutionStrategy(x0, sigma0, {"popsize": popsize, "maxfevals": budget,
-                                               "seed": seed, "verbose": -9})
+    es = cma.CMAEvolutionStrategy(
+        x0, sigma0, {"popsize": popsize, "maxfevals": budget, "seed": seed, "verbose": -9}
+    )
     evals, best_x, best_f, trace = 0, x0, np.inf, []
     while evals < budget:
         xs = es.ask(min(popsize, budget - evals)) if budget - evals < popsize else es.ask()
@@ -94,9 +95,18 @@ def main(config_path=None, *, smoke: bool = False) -> dict:
 
     # Gradient descent (Adam on raw values), `budget` evaluations (forward + backward each).
     t0 = time.perf_counter()
-    gd = dcfit.fit(sc, targets, settings.free, budget, init=init, loss=settings.loss,
-                   method="adam", learning_rate=settings.learning_rate, patience=budget,
-                   progress=not smoke)
+    gd = dcfit.fit(
+        sc,
+        targets,
+        settings.free,
+        budget,
+        init=init,
+        loss=settings.loss,
+        method="adam",
+        learning_rate=settings.learning_rate,
+        patience=budget,
+        progress=not smoke,
+    )
     gd_total = time.perf_counter() - t0
     h = gd.history
     gd_err = [max_rel_error({n: h.params[n][i] for n in truth}, truth) for i in range(len(h))]
@@ -104,8 +114,9 @@ def main(config_path=None, *, smoke: bool = False) -> dict:
 
     # CMA-ES on the same raw (log) parameters, forward simulations only.
     cons = {n: dcfit.default_constraint(n) for n in settings.free}
-    fwd = jax.jit(lambda p, tg, s: dcfit.video_loss(pipeline.simulate_and_render(s, p), tg,
-                                                     settings.loss))
+    fwd = jax.jit(
+        lambda p, tg, s: dcfit.video_loss(pipeline.simulate_and_render(s, p), tg, settings.loss)
+    )
 
     def raw_loss(raw):
         return fwd(dcfit.to_physical(raw, cons), targets, sc)
@@ -113,11 +124,21 @@ def main(config_path=None, *, smoke: bool = False) -> dict:
     # Levenberg-Marquardt (the default engine): each evaluation is one forward pass carrying
     # n = 2 tangents (the residuals and their forward-mode Jacobian).
     t0 = time.perf_counter()
-    lm = dcfit.fit(sc, targets, settings.free, budget, init=init, loss=settings.loss,
-                   method="lm", progress=not smoke)
+    lm = dcfit.fit(
+        sc,
+        targets,
+        settings.free,
+        budget,
+        init=init,
+        loss=settings.loss,
+        method="lm",
+        progress=not smoke,
+    )
     lm_total = time.perf_counter() - t0
-    lm_err = [max_rel_error({n: lm.history.params[n][i] for n in truth}, truth)
-              for i in range(len(lm.history))]
+    lm_err = [
+        max_rel_error({n: lm.history.params[n][i] for n in truth}, truth)
+        for i in range(len(lm.history))
+    ]
     lm_best = np.minimum.accumulate(np.asarray(lm_err))
 
     t0 = time.perf_counter()
@@ -125,20 +146,27 @@ def main(config_path=None, *, smoke: bool = False) -> dict:
     evals, best_raw, best_f, trace = run_cmaes(raw_loss, x0, budget, seed=settings.seed + 1)
     cma_total = time.perf_counter() - t0
     cma_params = {n: np.asarray(v) for n, v in dcfit.to_physical(best_raw, cons).items()}
-    cma_err = [max_rel_error({n: np.asarray(v) for n, v in dcfit.to_physical(r, cons).items()},
-                             truth) for _, r, _ in trace]
+    cma_err = [
+        max_rel_error({n: np.asarray(v) for n, v in dcfit.to_physical(r, cons).items()}, truth)
+        for _, r, _ in trace
+    ]
 
     plot_error_vs_evals(
-        {"gradient (Adam), best so far": (np.arange(1, len(gd_best) + 1), gd_best),
-         "Levenberg-Marquardt, best so far": (np.arange(1, len(lm_best) + 1), lm_best),
-         "CMA-ES, best so far": ([e for e, _, _ in trace], cma_err)},
-        out / "error_vs_evals.png", title="Drape fit: max relative error vs simulations",
+        {
+            "gradient (Adam), best so far": (np.arange(1, len(gd_best) + 1), gd_best),
+            "Levenberg-Marquardt, best so far": (np.arange(1, len(lm_best) + 1), lm_best),
+            "CMA-ES, best so far": ([e for e, _, _ in trace], cma_err),
+        },
+        out / "error_vs_evals.png",
+        title="Drape fit: max relative error vs simulations",
     )
 
     def summary(params, loss, iters, wall):
         s = report.fit_summary(
             dataclasses.replace(gd, params=params, loss=loss, iterations=iters, wall_s=wall),
-            truth, init)
+            truth,
+            init,
+        )
         s["total_s"] = wall
         return s
 
@@ -147,33 +175,52 @@ def main(config_path=None, *, smoke: bool = False) -> dict:
     s_cma = summary(cma_params, best_f, evals, cma_total)
     s_lm = summary(lm.params, lm.loss, lm.iterations, lm.wall_s)
     s_lm["total_s"] = lm_total
-    result = {"budget": budget, "gradient": s_gd, "cmaes": s_cma, "lm": s_lm,
-              "curves": {"gradient": {"evals": list(range(1, len(gd_best) + 1)),
-                                      "max_relative_error": gd_best.tolist()},
-                         "cmaes": {"evals": [e for e, _, _ in trace],
-                                   "max_relative_error": cma_err}}}
+    result = {
+        "budget": budget,
+        "gradient": s_gd,
+        "cmaes": s_cma,
+        "lm": s_lm,
+        "curves": {
+            "gradient": {
+                "evals": list(range(1, len(gd_best) + 1)),
+                "max_relative_error": gd_best.tolist(),
+            },
+            "cmaes": {"evals": [e for e, _, _ in trace], "max_relative_error": cma_err},
+        },
+    }
     save_json(out / "result.json", result)
 
-    lines = [f"# Gradient descent vs CMA-ES: {config_path.name}", "",
-             f"Same budget: {budget} simulations each (gradient: forward + backward per step; "
-             "CMA-ES: forward only, population "
-             f"{max(4, 4 + int(3 * np.log(sum(np.size(v) for v in init.values()))))}). "
-             "Targets: synthetic, noise " f"{settings.noise}. Wall times include compilation.", "",
-             "| method | parameter | true | initial | fitted | relative error |",
-             "|---|---|---|---|---|---|"]
-    for label, s in (("gradient (Adam)", s_gd), ("Levenberg-Marquardt", s_lm),
-                     ("CMA-ES", s_cma)):
+    lines = [
+        f"# Gradient descent vs CMA-ES: {config_path.name}",
+        "",
+        f"Same budget: {budget} simulations each (gradient: forward + backward per step; "
+        "CMA-ES: forward only, population "
+        f"{max(4, 4 + int(3 * np.log(sum(np.size(v) for v in init.values()))))}). "
+        "Targets: synthetic, noise "
+        f"{settings.noise}. Wall times include compilation.",
+        "",
+        "| method | parameter | true | initial | fitted | relative error |",
+        "|---|---|---|---|---|---|",
+    ]
+    for label, s in (("gradient (Adam)", s_gd), ("Levenberg-Marquardt", s_lm), ("CMA-ES", s_cma)):
         for n, e in s["params"].items():
-            lines.append(f"| {label} | {n} | {e['true']:.4g} | {e['initial']:.4g} | "
-                         f"{e['fitted']:.4g} | {100 * e['relative_error']:.3g} % |")
-    lines += ["", "| method | simulations | final loss | max relative error | wall (s) |",
-              "|---|---|---|---|---|",
-              f"| gradient (Adam) | {len(h)} | {s_gd['loss']:.3g} | {100 * gd_best[-1]:.3g} % | "
-              f"{gd_total:.0f} |",
-              f"| Levenberg-Marquardt | {lm.evaluations} (x {1 + len(init)} passes) | "
-              f"{s_lm['loss']:.3g} | {100 * lm_err[-1]:.3g} % | {lm_total:.0f} |",
-              f"| CMA-ES | {evals} | {s_cma['loss']:.3g} | {100 * cma_err[-1]:.3g} % | "
-              f"{cma_total:.0f} |", "", "![error vs simulations](error_vs_evals.png)", ""]
+            lines.append(
+                f"| {label} | {n} | {e['true']:.4g} | {e['initial']:.4g} | "
+                f"{e['fitted']:.4g} | {100 * e['relative_error']:.3g} % |"
+            )
+    lines += [
+        "",
+        "| method | simulations | final loss | max relative error | wall (s) |",
+        "|---|---|---|---|---|",
+        f"| gradient (Adam) | {len(h)} | {s_gd['loss']:.3g} | {100 * gd_best[-1]:.3g} % | "
+        f"{gd_total:.0f} |",
+        f"| Levenberg-Marquardt | {lm.evaluations} (x {1 + len(init)} passes) | "
+        f"{s_lm['loss']:.3g} | {100 * lm_err[-1]:.3g} % | {lm_total:.0f} |",
+        f"| CMA-ES | {evals} | {s_cma['loss']:.3g} | {100 * cma_err[-1]:.3g} % | {cma_total:.0f} |",
+        "",
+        "![error vs simulations](error_vs_evals.png)",
+        "",
+    ]
     (out / "report.md").write_text("\n".join(lines))
     add_row(f"{NAME} (gradient)", s_gd, smoke)
     add_row(f"{NAME} (CMA-ES)", s_cma, smoke)

@@ -262,7 +262,7 @@ def test_case3_sizes_are_refused_before_compiling_with_the_estimate(tmp_path, ca
 @pytest.mark.parametrize(
     "extra, needles",
     [
-        ('[fit.initial]\nbend = -8e-4\n', ["[fit.initial] bend", "(0, inf)"]),
+        ("[fit.initial]\nbend = -8e-4\n", ["[fit.initial] bend", "(0, inf)"]),
         ("", ["[fit.initial] diffuse", "(0, 1)"]),
         ("[truth]\nwind = [1.0, 2.0]\n", ["[truth]", "wind", "shape (2,)", "(3,)"]),
         ("", ["[fit] initial = 5", "table"]),
@@ -447,13 +447,16 @@ def test_case7_targets_16_bit_exact_srgb_default_for_8_bit(tmp_path):
 
 # ----------------------------------------------------------------------------- 8 silent acceptance
 
-BALL = TINY + """
+BALL = (
+    TINY
+    + """
 [[bodies]]
 shape = "sphere"
 radius = 0.15
 mass = 0.1
 position = [0.0, 0.9, 0.0]
 """
+)
 
 
 @pytest.mark.parametrize(
@@ -572,8 +575,12 @@ def test_case6_report_of_a_nonfinite_fit_is_strict_json_with_status(tmp_path):
     from diffcloth.fit.loop import FitResult, History
     from diffcloth.report import write_fit_report
 
-    h = History(loss=np.array([1.0, np.nan]), params={"bend": np.array([1.0, np.inf])},
-                grad_norm={"bend": np.array([1.0, np.nan])}, wall_s=np.array([0.0, 1.0]))
+    h = History(
+        loss=np.array([1.0, np.nan]),
+        params={"bend": np.array([1.0, np.inf])},
+        grad_norm={"bend": np.array([1.0, np.nan])},
+        wall_s=np.array([0.0, 1.0]),
+    )
     r = FitResult(params={"bend": np.array(1.0)}, raw={"bend": np.array(0.0)}, loss=1.0,
                   initial={"bend": np.array(1.0)}, history=h, iterations=1, wall_s=1.0,
                   status="nonfinite", message="non-finite loss/grad at step 1", best_step=0,

@@ -72,8 +72,12 @@ def _filtered_png(path, a: np.ndarray, filters):
 
     ctype = {1: 0, 2: 4, 3: 2, 4: 6}[c]
     head = struct.pack(">IIBBBBB", w, h, depth, ctype, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", head)
-                     + chunk(b"IDAT", zlib.compress(b"".join(out))) + chunk(b"IEND", b""))
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", head)
+        + chunk(b"IDAT", zlib.compress(b"".join(out)))
+        + chunk(b"IEND", b"")
+    )
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])

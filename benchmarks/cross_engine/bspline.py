@@ -21,9 +21,12 @@ import numpy as np
 def _basis(samples: int):
     """(samples, 4) blending weights and their derivatives at s = 0 .. 1 - 1/samples."""
     s = np.arange(samples) / samples
-    b = np.stack(
-        [(1 - s) ** 3, 3 * s**3 - 6 * s**2 + 4, -3 * s**3 + 3 * s**2 + 3 * s + 1, s**3], -1
-    ) / 6.0
+    b = (
+        np.stack(
+            [(1 - s) ** 3, 3 * s**3 - 6 * s**2 + 4, -3 * s**3 + 3 * s**2 + 3 * s + 1, s**3], -1
+        )
+        / 6.0
+    )
     db = np.stack([-3 * (1 - s) ** 2, 9 * s**2 - 12 * s, -9 * s**2 + 6 * s + 3, 3 * s**2], -1) / 6.0
     return b, db
 

@@ -353,7 +353,7 @@ def run_case(scene_name, regime, args, results):
 NOTES = [
     "## Notes",
     "",
-    "- `method` \"none (guess)\" rows come from `--steps 0`: no fit ran, the fitted columns are "
+    '- `method` "none (guess)" rows come from `--steps 0`: no fit ran, the fitted columns are '
     "the generic guess, and only the floor (true parameters) and the loss profile are "
     "measured. A fit run (`--steps N`) fills them.",
     "- The floor's control-point error is diffcloth's Provot model against the Warp reference "
@@ -431,15 +431,15 @@ def main(argv=None):
     ap.add_argument("--cases", nargs="*", help="scene:regime (default: all)")
     ap.add_argument("--data", default=str(DATA))
     ap.add_argument("--fit-frames", type=int, default=0, help="default: two thirds")
-    ap.add_argument(
-        "--steps", type=int, default=24, help="optimizer steps (all stages); 0: no fit"
-    )
+    ap.add_argument("--steps", type=int, default=24, help="optimizer steps (all stages); 0: no fit")
     ap.add_argument("--stride", type=int, default=3, help="render every k-th frame")
     ap.add_argument("--size", type=int, default=64, help="fit and compare at size^2 (box)")
     ap.add_argument("--level", type=int, default=3, help="diffcloth tessellation level")
     ap.add_argument("--no-profile", dest="profile", action="store_false")
     ap.add_argument(
-        "--profile-at", choices=("fitted", "truth"), default="fitted",
+        "--profile-at",
+        choices=("fitted", "truth"),
+        default="fitted",
         help="the other parameters of the k_struct loss profile",
     )
     ap.add_argument("--out", default=str(HERE / "results.jsonl"))

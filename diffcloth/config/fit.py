@@ -102,7 +102,7 @@ def _parse_engine(t: Mapping[str, Any], free) -> dict:
             make_schedule(stages)
         except (ValueError, TypeError) as err:
             raise cfg.ConfigError(
-                f"[fit] stages = {stages!r}: {err}; allowed: \"default\", \"none\" or a list of "
+                f'[fit] stages = {stages!r}: {err}; allowed: "default", "none" or a list of '
                 "{ min_level = 0..8, frames = (0, 1] } tables"
             ) from None
         out["stages"] = stages
@@ -222,8 +222,11 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         )
     cams = t.get("target_cameras")
     if cams is not None:
-        if (not isinstance(cams, list) or not cams
-                or not all(isinstance(c, str) and c.strip() and ".." not in c for c in cams)):
+        if (
+            not isinstance(cams, list)
+            or not cams
+            or not all(isinstance(c, str) and c.strip() and ".." not in c for c in cams)
+        ):
             raise cfg.ConfigError(
                 f"[fit] target_cameras = {cams!r} must be a list of folder names (or globs "
                 'matching one folder each) inside targets, one per camera, e.g. ["left", "right"]'
@@ -231,9 +234,12 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         cams = tuple(cams)
     frames = t.get("target_frames")
     if frames is not None:
-        if (not isinstance(frames, list) or len(frames) != 2
-                or not all(isinstance(f, int) and not isinstance(f, bool) for f in frames)
-                or not 0 <= frames[0] < frames[1]):
+        if (
+            not isinstance(frames, list)
+            or len(frames) != 2
+            or not all(isinstance(f, int) and not isinstance(f, bool) for f in frames)
+            or not 0 <= frames[0] < frames[1]
+        ):
             raise cfg.ConfigError(
                 f"[fit] target_frames = {frames!r} must be [first, stop]: 0 <= first < stop, "
                 "image indices after sorting (stop excluded)"

@@ -387,9 +387,7 @@ class _Tracker:
         for n in self.names:
             if self.params:
                 out[f"history/params/{n}"] = np.stack([np.asarray(p[n]) for p in self.params])
-                out[f"history/grad_norm/{n}"] = np.stack(
-                    [np.asarray(g[n]) for g in self.grad_norm]
-                )
+                out[f"history/grad_norm/{n}"] = np.stack([np.asarray(g[n]) for g in self.grad_norm])
             for key, rows in (("best_raw", self.best_raw), ("last_raw", self.last_finite_raw),
                               ("last_phys", self.last_finite_phys)):  # fmt: skip
                 ref = next((r[n] for r in rows if r is not None), None)

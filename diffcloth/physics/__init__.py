@@ -4,7 +4,9 @@ net = grid_net(10, 13, (1.2, 0.9), pinned="top_corners")
 traj = rollout(net, make_sim(), make_material(), rest_state(net), num_frames=60)
 """
 
+from diffcloth.physics import coupled, rigid  # noqa: E402  (rigid bodies and cloth coupling)
 from diffcloth.physics.collide import Colliders, as_colliders, collide, make_colliders
+from diffcloth.physics.coupled import body_colliders, coupled_rollout, coupled_step
 from diffcloth.physics.forces import (
     bend_forces,
     drag_forces,
@@ -25,6 +27,12 @@ from diffcloth.physics.integrate import (
     step_with_contacts,
     symplectic_euler,
 )
+from diffcloth.physics.massspring import (
+    MASS_SPRING_FIELDS,
+    MassSpring,
+    make_mass_spring,
+    validate_mass_spring,
+)
 from diffcloth.physics.material import (
     MATERIAL_FIELDS,
     Material,
@@ -35,13 +43,18 @@ from diffcloth.physics.material import (
     to_raw,
     validate_material,
 )
-from diffcloth.physics.massspring import (
-    MASS_SPRING_FIELDS,
-    MassSpring,
-    make_mass_spring,
-    validate_mass_spring,
-)
 from diffcloth.physics.net import Net, grid_net, make_net
+from diffcloth.physics.rigid import (
+    RigidBody,
+    RigidSettings,
+    Thrusters,
+    bodies_from_config,
+    make_body,
+    make_thrusters,
+    rigid_rollout,
+    rigid_step,
+)
+from diffcloth.physics.rigid import make_settings as make_rigid_settings
 from diffcloth.physics.rollout import (
     StabilityWarning,
     UnstableSimulationError,
@@ -56,19 +69,6 @@ from diffcloth.physics.rollout import (
     trajectory_ok,
 )
 from diffcloth.physics.state import ClothState, SimSettings, make_sim, rest_state, validate_state
-from diffcloth.physics import coupled, rigid  # noqa: E402  (rigid bodies and cloth coupling)
-from diffcloth.physics.rigid import (
-    RigidBody,
-    RigidSettings,
-    Thrusters,
-    bodies_from_config,
-    make_body,
-    make_thrusters,
-    rigid_rollout,
-    rigid_step,
-)
-from diffcloth.physics.rigid import make_settings as make_rigid_settings
-from diffcloth.physics.coupled import body_colliders, coupled_rollout, coupled_step
 
 __all__ = [
     "RigidBody",
