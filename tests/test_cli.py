@@ -127,6 +127,7 @@ velocity = [0.0, 0.0, -3.0]
 )
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_render_and_simulate_with_a_rigid_body(tmp_path, capsys):
     import imageio.v3 as iio
 

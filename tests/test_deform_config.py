@@ -40,6 +40,7 @@ def test_deform_entries_parse_into_the_scene_and_displace_the_surface():
     assert apply_deformations(surf, (), t) is surf
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_deform_changes_the_video_and_travels_with_time():
     plain = scene.build_scene(cfg.parse_config(_conf([])), dtype=jnp.float64)
     wavy = scene.build_scene(cfg.parse_config(_conf([WAVE])), dtype=jnp.float64)

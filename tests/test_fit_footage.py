@@ -179,6 +179,7 @@ def _neutral(sc):
     return {k: np.asarray(pipeline.param_value(sc, k)) for k in NUISANCE}
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_neutral_capture_leaves_images_unchanged_and_masks_are_coverage(small, frame_fn):
     sc, x = small
     img0 = jax.jit(pipeline.render_frame)(sc, x)  # no capture at all

@@ -75,7 +75,9 @@ def _check(integrator, num_frames):
         np.testing.assert_allclose(ad, fd, rtol=2e-4, atol=1e-9 * abs(fd) + 1e-12, err_msg=name)
 
 
-@pytest.mark.parametrize("integrator", ["symplectic", "implicit"])
+@pytest.mark.parametrize(
+    "integrator", ["symplectic", pytest.param("implicit", marks=pytest.mark.slow)]
+)
 def test_material_gradients_short_rollout(integrator):
     _check(integrator, 6)
 

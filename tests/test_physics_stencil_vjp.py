@@ -23,7 +23,7 @@ MAT = physics.make_material(
 )
 
 
-@pytest.mark.parametrize("wind", [True, False])
+@pytest.mark.parametrize("wind", [pytest.param(True, marks=pytest.mark.slow), False])
 def test_hand_vjp_matches_autodiff(wind):
     rng = np.random.default_rng(0)
     x = NET.rest + 0.03 * jnp.asarray(rng.normal(size=NET.rest.shape))
@@ -50,6 +50,7 @@ def test_hand_vjp_matches_autodiff(wind):
     assert float(jnp.abs(ga[1]).max()) > 1.0
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_forward_mode_through_autodiff_forces():
     sim = physics.make_sim(1 / 30, num_substeps=4)
     net = physics.grid_net(4, 5, (0.4, 0.3), pinned="top_row")

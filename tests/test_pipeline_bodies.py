@@ -41,6 +41,7 @@ def test_bodies_are_read_and_simulated_with_the_cloth(ball_scene):
     assert float(jnp.max(jnp.abs(cloth.x[-1] - alone.x[-1]))) > 1e-3
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_ball_is_drawn_and_body_params_apply(ball_scene):
     render = jax.jit(pipeline.simulate_and_render)  # one compile: same structure both times
     with_ball = np.asarray(render(ball_scene))

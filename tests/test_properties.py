@@ -319,6 +319,7 @@ def _check_shading(modes, normal, tangent, eyes, light, k, ior, shininess, degen
         assert rgb[i].max() <= limit, f"{mode}: {rgb[i].max()} > {limit}"
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 @settings(PROPERTY, max_examples=20)
 @given(SHADING_INPUTS)
 def test_shading_modes_finite_bounded_with_finite_gradients(inputs):

@@ -20,6 +20,7 @@ def _cloth():
     return surface.tessellate(jnp.stack([u, 0.02 * u * v, v], axis=-1), 4, flip=True)
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_texture_tiling_controls_bump_detail_and_gradient():
     surf = _cloth()
 

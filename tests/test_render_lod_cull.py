@@ -36,6 +36,7 @@ def test_lod_auto_picks_the_level_from_the_projected_size():
         _scene({"lod": "sometimes"})
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_cull_from_config_and_in_the_renderer():
     assert _scene({"cull": True}).cull and not _scene({}).cull
     with pytest.raises(cfg.ConfigError, match=r"\[render\] cull"):

@@ -229,6 +229,7 @@ _value_and_grad_budget = jax.jit(
 )
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_compact_silhouette_search_matches_full_image_search():
     """The compacted pair list (default from 128 x 128 up) gives the full search's image and
     gradients exactly."""
@@ -382,6 +383,7 @@ def test_gbuffer_composite_and_antialias():
     np.testing.assert_allclose(float(out[..., 3].sum()), 112.0, atol=1e-9)
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_vmap_over_cameras_and_float32():
     eyes = jnp.array([[0.0, 0.0, 4.0], [0.5, 0.3, 4.0]])
     up = jnp.array([0.0, 1.0, 0.0])

@@ -305,6 +305,7 @@ def test_bump_map_normal():
     )
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_degenerate_frame_is_finite_row24_25():
     """Zero normals / tangents (perturbed normal of zero length) and a zero reflection vector."""
     zero = jnp.zeros((N, N, 3))

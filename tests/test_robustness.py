@@ -228,6 +228,7 @@ PARTS = make_parts(jnp.result_type(float))  # float64 under the test suite, floa
 EYE = (0.0, 2.0, 2.5)
 
 
+@pytest.mark.slow  # keeps the default suite under 10 min; runs with -m slow
 def test_row_12_vertex_at_sphere_centre_through_collide_and_render():
     net = flat_net()
     centre = tessellate(net, 2).positions[12]  # a tessellated vertex exactly at the centre
