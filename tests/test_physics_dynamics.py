@@ -197,11 +197,11 @@ def test_stability_estimate_warns_and_explicit_blows_up_where_implicit_holds():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", physics.StabilityWarning)
         with pytest.raises(physics.UnstableSimulationError, match="unstable: .*implicit"):
-            physics.simulate(SMALL, sim, STIFF, s0, num_frames=30)
+            physics.checked_rollout(SMALL, sim, STIFF, s0, num_frames=30)
     traj = run(SMALL, sim, STIFF, s0, 30)
     assert not bool(physics.trajectory_ok(SMALL, traj))
     sim_i = dataclasses.replace(sim, integrator="implicit")
-    traj_i = physics.simulate(SMALL, sim_i, STIFF, s0, num_frames=30)
+    traj_i = physics.checked_rollout(SMALL, sim_i, STIFF, s0, num_frames=30)
     assert bool(physics.trajectory_ok(SMALL, traj_i))
     # stiff springs keep their rest lengths (the net falls and tumbles as a stiff sheet)
     edges = jnp.linalg.norm(traj_i.x[:, :, 1:] - traj_i.x[:, :, :-1], axis=-1)
@@ -213,6 +213,11 @@ def test_nan_initial_state_is_rejected_eagerly_and_flagged_in_debug():
     s0 = physics.rest_state(SMALL)
     bad = physics.ClothState(s0.x.at[2, 2, 1].set(jnp.nan), s0.v)
     with pytest.raises(ValueError, match=r"state\.x: must be finite"):
+        physics.checked_rollout(SMALL, sim, FREE_MAT, bad, num_frames=3)
+    with (  # the old name still works, with a deprecation warning
+        pytest.warns(DeprecationWarning, match="renamed checked_rollout"),
+        pytest.raises(ValueError, match=r"state\.x: must be finite"),
+    ):
         physics.simulate(SMALL, sim, FREE_MAT, bad, num_frames=3)
     checked = checkify.checkify(
         jax.jit(lambda s: physics.rollout(SMALL, sim, FREE_MAT, s, num_frames=3, debug=True))

@@ -95,7 +95,7 @@ def draped_surface(seconds: float = 1.0):
     """The seed's scene: 13 x 10 net dropped on the sphere of configs/drape.toml, level 13."""
     ps = build_physics(load_config(ROOT / "configs" / "drape.toml"))
     frames = int(round(seconds / float(ps.sim.dt)))
-    end = physics.simulate(
+    end = physics.checked_rollout(
         ps.net, ps.sim, ps.material, ps.state, num_frames=frames, colliders=ps.colliders
     )
     return tessellate(end.x[-1], 13)

@@ -61,6 +61,7 @@ from diffcloth.physics.rollout import (
     advance,
     blowup_bound,
     check_stability,
+    checked_rollout,
     first_bad_frame,
     frames_ok,
     rollout,
@@ -124,7 +125,8 @@ __all__ = [
     "first_bad_frame",
     "frames_ok",
     "rollout",
-    "simulate",
+    "simulate",  # deprecated name of checked_rollout
+    "checked_rollout",
     "spring_forces",
     "stable_substep",
     "step",

@@ -95,7 +95,7 @@ def rollout(
         is the pose at the end of frame k; sphere velocities come from finite differences.
       pin_path: optional (num_frames, rows, cols, 3): where pinned points are at the end of each frame.
       debug: add `checkify` checks that every frame is finite; wrap the caller in
-        `jax.experimental.checkify.checkify` to collect them (as `simulate(debug=True)` does).
+        `jax.experimental.checkify.checkify` to collect them (as `checked_rollout(debug=True)` does).
       collect: False returns only the final state (no trajectory; what `advance` uses).
 
     >>> net = grid_net(4, 4, (0.3, 0.3), pinned="top_row")     # doctest: +SKIP
@@ -302,7 +302,7 @@ def _jitted_rollout(num_frames: int, debug: bool):
     return _JITTED[key]
 
 
-def simulate(
+def checked_rollout(
     net: Net,
     sim: SimSettings,
     material: Material,
@@ -343,3 +343,15 @@ def simulate(
             f"{stable_substep(net, sim, material, method='gershgorin'):.3g} s)"
         )
     return traj
+
+
+def simulate(*args, **kwargs) -> ClothState:
+    """Deprecated name of `checked_rollout` (it clashed with the scene-level `diffcloth.simulate`,
+    which does something else); will be removed in 0.3."""
+    warnings.warn(
+        "diffcloth.physics.simulate is renamed checked_rollout (diffcloth.simulate is the "
+        "scene-level trajectory); the old name goes in 0.3",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return checked_rollout(*args, **kwargs)
