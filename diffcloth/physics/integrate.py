@@ -191,6 +191,11 @@ def _displacement_rule(sim) -> bool:
     return rule == "displacement" or (rule == "auto" and sim.integrator == "implicit")
 
 
+def _impact_rule(sim) -> bool:
+    rule = getattr(sim, "friction_rule", "auto")
+    return rule == "impact" or (rule == "auto" and sim.integrator != "implicit")
+
+
 def step_with_contacts(
     net: Net,
     sim: SimSettings,
@@ -250,6 +255,7 @@ def step_with_contacts(
                 t,
                 x_prev=x if _displacement_rule(sim) else None,
                 h=h,
+                x_start=x if _impact_rule(sim) else None,
             )
         return x1, v1, dsi, dpi
 
