@@ -106,7 +106,7 @@ import pytest
 
 from diffcloth.render import camera as C
 from diffcloth.render import lights as Lm
-from diffcloth.render.render import _sphere_layer, render
+from diffcloth.render.frame import _sphere_layer, render
 from diffcloth.shapes import Sphere
 from diffcloth.surface import collide_surface, tessellate
 

@@ -96,7 +96,10 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
 def default_silhouette_budget(width: int, height: int) -> int:
     """Default size of the compacted silhouette-pair list: H W / 16 (the seed cloth needs about
     H W / 32 at 256 x 256 and H W / 50 at 512 x 512); below 128 x 128 pixels the full-image search
-    (budget 2 H W) is as cheap and compiles once instead of twice."""
+    (budget 2 H W) is as cheap and compiles once instead of twice.
+
+    Shapes: none (Python ints).
+    """
     n = width * height
     return int(n // 16) if n >= 128 * 128 else int(2 * n)
 

@@ -114,13 +114,19 @@ DIRECT_PIXELS = 2  # triangles with at most this many pixel centres in their box
 
 
 def default_max_tiles(num_triangles: int, width: int, height: int, tile_size: int = 2) -> int:
-    """Default window budget: one per triangle plus two full screens of windows."""
+    """Default window budget: one per triangle plus two full screens of windows.
+
+    Shapes: none (Python ints).
+    """
     return int(num_triangles + 2 * math.ceil(width / tile_size) * math.ceil(height / tile_size))
 
 
 def required_tiles(positions, faces, camera: Camera, *, tile_size: int = 2, cull_backfaces=False):
     """Number of pixel windows a scene needs (compare with `max_tiles`): windows of the triangles
-    covering more than DIRECT_PIXELS pixel centres."""
+    covering more than DIRECT_PIXELS pixel centres.
+
+    Shapes: positions (n, 3) m, faces (m, 3) int -> () int32.
+    """
     s = _setup(positions, faces, camera, cull_backfaces)
     direct = _tile_counts(s, 1)[1] <= DIRECT_PIXELS
     return jnp.sum(jnp.where(direct, 0, _tile_counts(s, tile_size)[1]))
