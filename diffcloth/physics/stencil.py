@@ -6,11 +6,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from diffcloth._math import dtype_eps
-from diffcloth.physics.planar import (
-    _cross,
-    _dot,
-    _stiffness,
-)
+from diffcloth.physics.planar import _cross, _dot, _stiffness
 
 # ---------------------------------------------------------------------------------------------
 # Fused grid kernels on zero-padded arrays. x and v are padded once by two nodes on every side;

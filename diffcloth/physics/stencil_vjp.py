@@ -10,10 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from diffcloth._math import dtype_eps
-from diffcloth.physics.planar import (
-    _cross,
-    _dot,
-)
+from diffcloth.physics.planar import _cross, _dot
 from diffcloth.physics.stencil import (
     _CELLS,
     _ENDS,

@@ -7,12 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth.render.sampling import (
-    CubeMap,
-    face_directions,
-    make_cube_map,
-    sample_2d,
-)
+from diffcloth.render.sampling import CubeMap, face_directions, make_cube_map, sample_2d
 
 # ----------------------------------------------------------------------------- procedural
 

@@ -13,11 +13,7 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 
-from diffcloth.physics.rigid.bodies import (
-    RigidBody,
-    RigidSettings,
-    Thrusters,
-)
+from diffcloth.physics.rigid.bodies import RigidBody, RigidSettings, Thrusters
 from diffcloth.physics.rigid.impulse import collide_pair, collide_plane
 from diffcloth.physics.rigid.quat import (
     _inv_inertia_world,
