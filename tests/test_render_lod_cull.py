@@ -60,3 +60,52 @@ def test_cull_from_config_and_in_the_renderer():
     gone = np.asarray(f(away, True))
     assert gone[..., 3].max() == 0.0  # outside the frustum: nothing drawn
     np.testing.assert_array_equal(gone, np.asarray(f(away, False)))  # and nothing was visible
+
+
+CLI_SCENE = """
+[net]
+rows = 5
+cols = 5
+width = 0.8
+height = 0.8
+center = [0.0, 0.5, 0.0]
+
+[sim]
+num_frames = 2
+
+[render]
+width = 16
+height = 16
+lod = "auto"
+cull = true
+
+[camera]
+eye = [0.0, 1.4, 1.2]
+target = [0.0, 0.5, 0.0]
+"""
+CLI_WAVE = """
+[[deform]]
+kind = "waves"
+amplitude = 0.08
+wavelength = 0.5
+"""
+
+
+@pytest.mark.slow  # two CLI renders (two compiles); runs with -m slow
+def test_lod_cull_and_deform_from_the_cli(tmp_path, capsys):
+    """`diffcloth render` on a config with [render] lod = "auto", cull = true and a [[deform]]
+    entry: the scene it renders has the auto level and culling on, and the waves are drawn."""
+    from diffcloth.cli import main
+
+    videos = {}
+    for name, text in (("plain", CLI_SCENE), ("wavy", CLI_SCENE + CLI_WAVE)):
+        path = tmp_path / f"{name}.toml"
+        path.write_text(text)
+        sc = scene.build_scene(cfg.load_config(path))
+        assert sc.cull and len(sc.deform) == (name == "wavy")
+        out = tmp_path / name
+        assert main(["render", str(path), "--out", str(out), "--format", "gif", "--npy"]) == 0
+        assert f"level {sc.level} (lod auto), culling on" in capsys.readouterr().out
+        videos[name] = np.load(out / "video.npy")
+    assert videos["plain"].shape == (1, 2, 16, 16, 3)
+    assert np.abs(videos["wavy"] - videos["plain"]).max() > 0.02  # the waves reach the CLI video
