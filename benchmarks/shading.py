@@ -28,7 +28,7 @@ from _timing import emit, meta, timed
 from diffcloth.render import lights as Lm
 from diffcloth.render import textures as T
 from diffcloth.render.camera import make_camera
-from diffcloth.render.render import render, surface_gbuffer
+from diffcloth.render.frame import render, surface_gbuffer
 from diffcloth.render.shade import MODES, shade
 from diffcloth.shapes import make_sphere
 from diffcloth.surface import tessellate
@@ -108,7 +108,7 @@ def main():
 
 def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
     """Render cost with and without shadows (module docstring)."""
-    from diffcloth.render.render import frame_shadow_maps
+    from diffcloth.render.frame import frame_shadow_maps
     from diffcloth.shapes import make_plane
 
     modes = [m for m in args.shadow_modes.split(",") if m and m != "none"]

@@ -12,13 +12,14 @@ import jax.numpy as jnp
 EPS = {jnp.dtype("float32"): 1e-12, jnp.dtype("float64"): 1e-30}
 
 
-def _eps(x) -> float:
+def dtype_eps(x) -> float:
+    """Default threshold below which the safe functions treat a value as zero, per dtype."""
     return EPS.get(jnp.result_type(x), 1e-12)
 
 
 def safe_sqrt(x, eps: float | None = None):
     """sqrt(max(x, 0)) with a finite gradient at and below 0 (gradient 0 there)."""
-    eps = _eps(x) if eps is None else eps
+    eps = dtype_eps(x) if eps is None else eps
     ok = x > eps
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
 
@@ -32,7 +33,7 @@ def safe_norm(x, axis: int = -1, keepdims: bool = False, eps: float | None = Non
 def safe_normalize(x, axis: int = -1, fallback=None, eps: float | None = None):
     """x / |x| along `axis`; where |x| is (near) zero return `fallback` (default +y for 3-vectors,
     else the first basis vector). Finite value and gradient everywhere."""
-    eps = _eps(x) if eps is None else eps
+    eps = dtype_eps(x) if eps is None else eps
     sq = jnp.sum(x * x, axis=axis, keepdims=True)
     ok = sq > eps
     n = jnp.sqrt(jnp.where(ok, sq, 1.0))
@@ -46,7 +47,7 @@ def safe_normalize(x, axis: int = -1, fallback=None, eps: float | None = None):
 
 def safe_div(num, den, eps: float | None = None, fallback=0.0):
     """num / den, returning `fallback` (gradient 0) where |den| <= eps."""
-    eps = _eps(den) if eps is None else eps
+    eps = dtype_eps(den) if eps is None else eps
     ok = jnp.abs(den) > eps
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), fallback)
 
@@ -58,7 +59,7 @@ def safe_pow(x, k, eps: float = 1e-6):
 
 def safe_atan2(y, x, eps: float | None = None):
     """atan2(y, x) that returns 0 with gradient 0 at the origin."""
-    eps = _eps(x) if eps is None else eps
+    eps = dtype_eps(x) if eps is None else eps
     ok = (x * x + y * y) > eps
     return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, x, 1.0)), 0.0)
 

@@ -47,7 +47,7 @@ def load_targets(settings, sc) -> np.ndarray:
     files and linear for 16-bit ones), "srgb" or "linear"; targets are converted to linear RGB.
     """
     from diffcloth.io import load_image
-    from diffcloth.io.media import _natural_key
+    from diffcloth.io.media import natural_key
 
     root = Path(settings.targets)
     if not root.is_dir():
@@ -76,7 +76,7 @@ def load_targets(settings, sc) -> np.ndarray:
             )
         folder = hits[0]
         files = sorted((p for p in folder.glob(settings.target_glob) if p.is_file()),
-                       key=_natural_key)  # fmt: skip
+                       key=natural_key)  # fmt: skip
         if not files:
             raise cfg.ConfigError(
                 f"[fit] targets: no files matching {settings.target_glob!r} in {str(folder)!r} "

@@ -359,3 +359,22 @@ def test_fit_config_keys_method_ties_stages():
     ):
         with pytest.raises(ConfigError, match=match):
             parse_fit({"fit": {**base, **bad}, "truth": truth})
+
+
+def test_lm_far_start_survives_a_run_of_rejected_steps():
+    # one positive parameter 5x off: the first Gauss-Newton steps in log space overshoot and are
+    # rejected until the trust region has shrunk; that must not end the fit as "stalled"
+    t = jnp.linspace(0.0, 4.0, 30)
+    seen = []
+    res = fit_lm(
+        lambda p, t: (p["a"] - 1.0) * t,
+        {"a": 0.2},
+        {"a": "positive"},
+        loss_args=(t,),
+        progress=False,
+        steps=40,
+        hook=lambda k, info: seen.append(info["loss"]),
+    )
+    assert res.status == "converged", res.message
+    assert float(res.params["a"]) == pytest.approx(1.0, rel=1e-5)
+    assert seen[1] == seen[0]  # the first step was indeed rejected

@@ -1,6 +1,8 @@
 """Rigid bodies in a Scene: [[bodies]] config, coupled simulation, drawn balls, body parameters
 as fit parameters with gradients checked against finite differences (float64)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -37,7 +39,7 @@ def test_bodies_are_read_and_simulated_with_the_cloth(ball_scene):
     assert cloth.x.shape == (6, 5, 5, 3) and ball.position.shape == (6, 3)
     assert float(ball.position[-1, 2]) < 0.25  # it flew towards the cloth
     # the cloth was pushed: it moved further than under gravity alone (no bodies)
-    alone = jax.jit(pipeline.simulate)(pipeline.dataclasses.replace(ball_scene, bodies=()))
+    alone = jax.jit(pipeline.simulate)(dataclasses.replace(ball_scene, bodies=()))
     assert float(jnp.max(jnp.abs(cloth.x[-1] - alone.x[-1]))) > 1e-3
 
 
@@ -55,7 +57,7 @@ def test_ball_is_drawn_and_body_params_apply(ball_scene):
 
 
 def test_body_params_without_bodies_and_bad_bodies_are_errors(ball_scene):
-    empty = pipeline.dataclasses.replace(ball_scene, bodies=())
+    empty = dataclasses.replace(ball_scene, bodies=())
     with pytest.raises(ValueError, match=r"body_mass: the scene has no rigid bodies"):
         pipeline.apply_params(empty, {"body_mass": 1.0})
     bad = dict(BALL_SCENE, bodies=[dict(BALL_SCENE["bodies"][0], mass=-1.0)])

@@ -21,8 +21,8 @@ import pytest
 from diffcloth import config as cfg
 from diffcloth import pipeline, render, scene, surface
 from diffcloth.render.camera import look_at, make_camera
+from diffcloth.render.frame import _grid_neighbors
 from diffcloth.render.raster import edge_neighbors
-from diffcloth.render.render import _grid_neighbors
 from diffcloth.render.textures import uv_lod
 
 

@@ -11,7 +11,7 @@ from diffcloth.render import lights as Lm
 from diffcloth.render import shade as S
 from diffcloth.render import textures as T
 from diffcloth.render.camera import make_camera
-from diffcloth.render.render import render
+from diffcloth.render.frame import render
 from diffcloth.shapes import make_sphere
 from diffcloth.surface import tessellate
 

@@ -10,7 +10,7 @@ import pytest
 
 from diffcloth.render import lights as Lm
 from diffcloth.render.camera import make_camera
-from diffcloth.render.render import render
+from diffcloth.render.frame import render
 from diffcloth.render.shadows import shadow_maps, shadow_visibility, sphere_visibility
 from diffcloth.shapes import make_plane, make_sphere
 
@@ -186,7 +186,7 @@ def test_render_ground_plane_receives_sphere_shadow_only_ambient_in_umbra():
     ambient (a Lambertian surface in shadow gets only ambient light), pixels outside are albedo *
     (ambient + 1); without shadows every pixel is lit."""
     from diffcloth.render.camera import pixel_rays
-    from diffcloth.render.render import PLANE_COLOR
+    from diffcloth.render.frame import PLANE_COLOR
 
     pos, faces = square((3.0, 0.5, 3.0), 0.05, 2)  # a tiny cloth outside the view
     surf = _plain_surface(pos, faces)

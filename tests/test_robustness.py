@@ -6,11 +6,13 @@ files (ast) so the map cannot rot. Rows with new coverage have a `test_row_NN_<w
 rows have both). E = eager ValueError/TypeError naming the argument and the allowed range,
 G = finite value and finite gradient, F = flagged status / clear message.
 
-Row -> existing tests, written `row  <file>::<name>` for tests/test_<file>.py::test_<name>:
+Row -> existing tests, written `row  <file>::<name>` for tests/test_<file>.py::test_<name>
+(test_hardening.py's CLI-level cases are mapped where they exercise a row end to end):
 
    1  physics_forces::coincident_nodes_give_finite_force_and_gradient
    2  physics_net::zero_rest_length_spring_is_an_error
    3  physics_net::material_bad_values_name_field_and_range
+   3  hardening::case1_and_8_eager_bad_params_name_the_parameter
    4  physics_net::to_physical_is_positive_and_finite_everywhere
    4  fit_constraints::positive_for_any_raw
    5  physics_dynamics::zero_frames_returns_initial_state_and_bad_counts_raise
@@ -21,6 +23,7 @@ Row -> existing tests, written `row  <file>::<name>` for tests/test_<file>.py::t
    8  physics_dynamics::all_pinned_state_is_constant_and_none_pinned_moves
    8  physics_net::grid_net_bad_input
    9  physics_dynamics::free_fall_matches_half_g_t_squared
+   9  hardening::case10_long_free_fall_is_not_a_blow_up
   10  physics_dynamics::undamped_spring_energy_drift_below_one_percent
   10  physics_dynamics::convergence_order_is_one
   11  physics_forces::internal_forces_invariant_under_rigid_motion
@@ -57,9 +60,11 @@ Row -> existing tests, written `row  <file>::<name>` for tests/test_<file>.py::t
   26  fit_losses::validate_targets_errors
   26  fit_losses::validate_targets_converts_uint8
   26  pipeline::bad_input_is_rejected_before_compilation
+  26  hardening::case4_every_bad_target_folder
   27  fit_losses::equal_images_give_exact_zero_loss_and_grad
   28  fit_loop::nonfinite_stops_with_message_and_keeps_last_finite
   28  fit_loop::nonfinite_not_hidden_by_apply_if_finite
+  28  hardening::case6_nonfinite_stop_is_status_nonfinite_exit_1_strict_json
   29  physics_checkpoint::checkpointed_scan_matches_lax_scan
   29  physics_checkpoint::gradient_memory_grows_sublinearly
   29  physics_gradients::material_gradients_30_frames
@@ -106,7 +111,7 @@ import pytest
 
 from diffcloth.render import camera as C
 from diffcloth.render import lights as Lm
-from diffcloth.render.render import _sphere_layer, render
+from diffcloth.render.frame import _sphere_layer, render
 from diffcloth.shapes import Sphere
 from diffcloth.surface import collide_surface, tessellate
 

@@ -51,6 +51,9 @@ __all__ = ["fit_lm", "fit_lm_multistart", "lm_jacobian", "num_scalars"]
 
 log = logging.getLogger("diffcloth.fit")
 
+#: consecutive rejected steps allowed = _REJECT_FACTOR * lm_patience (each shrinks the radius 4x)
+_REJECT_FACTOR = 3
+
 
 def num_scalars(params: Mapping[str, Any]) -> int:
     """Total number of scalars in a dict of parameters."""
@@ -330,6 +333,7 @@ def _run_lm(
             budget = s.steps if last_stage else min(s.lm_stage_steps, s.steps)
             ref = loss0.copy()
             stall = np.zeros(n, int)
+            rejected = np.zeros(n, int)
             prev_acc = np.zeros(n, int)
             prev_loss = loss0.copy()
             prev_y = {k: host(v).copy() for k, v in raw.items()}
@@ -371,17 +375,24 @@ def _run_lm(
                                 f"{rel:.2g} at LM step {k} of {stage_names[si]}",
                             )
                         else:
+                            # A rejected step only shrinks the trust region (x 1/4 in
+                            # optimistix); far from the optimum many in a row are normal, so
+                            # they get a longer patience than accepted steps that stop helping.
                             if loss[i] < ref[i] * (1.0 - s.lm_ftol):
-                                ref[i], stall[i] = loss[i], 0
-                            else:
+                                ref[i], stall[i], rejected[i] = loss[i], 0, 0
+                            elif accepted:
                                 stall[i] += 1
-                                if stall[i] >= s.lm_patience:
-                                    end = (
-                                        "stalled",
-                                        f"no relative improvement > {s.lm_ftol:g} "
-                                        f"for {s.lm_patience} LM steps (trust radius "
-                                        f"{radius[i]:.2g}) in {stage_names[si]}",
-                                    )
+                            else:
+                                rejected[i] += 1
+                            if stall[i] >= s.lm_patience or rejected[i] >= _REJECT_FACTOR * (
+                                s.lm_patience
+                            ):
+                                end = (
+                                    "stalled",
+                                    f"no relative improvement > {s.lm_ftol:g} for "
+                                    f"{stall[i] + rejected[i]} LM steps ({rejected[i]} rejected; "
+                                    f"trust radius {radius[i]:.2g}) in {stage_names[si]}",
+                                )
                         prev_acc[i], prev_loss[i] = acc[i], loss[i]
                         for kk in names:
                             prev_y[kk][i] = yh[kk][i]

@@ -82,14 +82,25 @@ def _encode(image: np.ndarray, colorspace: str) -> np.ndarray:
     """Linear float image -> values to store; alpha (4th channel) untouched."""
     if colorspace == "linear" or image.dtype in (np.uint8, np.uint16, np.bool_):
         return image
+    a = _finite(image)
+    if a.ndim >= 3 and a.shape[-1] == 4:
+        return np.concatenate([linear_to_srgb(a[..., :3]), np.clip(a[..., 3:], 0, 1)], -1)
+    return linear_to_srgb(a)
+
+
+def _finite(image) -> np.ndarray:
+    """The image as float64; raises naming the shape and count when it holds NaN/inf."""
     a = np.asarray(image, np.float64)
     if not np.all(np.isfinite(a)):
         raise ValueError(
             f"image of shape {a.shape} contains {int((~np.isfinite(a)).sum())} NaN/inf"
         )
-    if a.ndim >= 3 and a.shape[-1] == 4:
-        return np.concatenate([linear_to_srgb(a[..., :3]), np.clip(a[..., 3:], 0, 1)], -1)
-    return linear_to_srgb(a)
+    return a
+
+
+def _quantize(image, top: int, dtype) -> np.ndarray:
+    """Float [0, 1] -> integers 0..top (clip, scale, round) of `dtype`; NaN/inf raise."""
+    return np.round(np.clip(_finite(image), 0.0, 1.0) * float(top)).astype(dtype)
 
 
 def to_uint8(image) -> np.ndarray:
@@ -99,12 +110,7 @@ def to_uint8(image) -> np.ndarray:
         return a
     if a.dtype == np.bool_:
         return a.astype(np.uint8) * 255
-    a = a.astype(np.float64)
-    if not np.all(np.isfinite(a)):
-        raise ValueError(
-            f"image of shape {a.shape} contains {int((~np.isfinite(a)).sum())} NaN/inf"
-        )
-    return np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return _quantize(a, 255, np.uint8)
 
 
 def _check_image(image, name: str = "image") -> np.ndarray:
@@ -138,12 +144,7 @@ def to_uint16(image) -> np.ndarray:
         return a
     if a.dtype == np.uint8:
         return a.astype(np.uint16) * 257
-    a = a.astype(np.float64)
-    if not np.all(np.isfinite(a)):
-        raise ValueError(
-            f"image of shape {a.shape} contains {int((~np.isfinite(a)).sum())} NaN/inf"
-        )
-    return np.round(np.clip(a, 0.0, 1.0) * 65535.0).astype(np.uint16)
+    return _quantize(a, 65535, np.uint16)
 
 
 def save_png(path, image, *, colorspace: str = "linear", bits: int = 8) -> Path:
@@ -365,7 +366,8 @@ def load_json(path) -> Any:
     return json.loads(Path(path).read_text())
 
 
-def _natural_key(p: Path):
+def natural_key(p: Path):
+    """Sort key for file names with numbers in natural order (frame2 before frame10)."""
     return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", p.name)]
 
 
@@ -378,7 +380,7 @@ def load_image_sequence(folder, pattern: str = "*.png", *, colorspace: str = "au
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"target image folder {str(folder)!r} does not exist")
-    files = sorted((p for p in folder.glob(pattern) if p.is_file()), key=_natural_key)
+    files = sorted((p for p in folder.glob(pattern) if p.is_file()), key=natural_key)
     if not files:
         raise ValueError(f"no files matching {pattern!r} in {str(folder)!r}")
     frames = [load_image(p, colorspace=colorspace) for p in files]

@@ -49,7 +49,11 @@ class Colliders:
 
 
 def make_colliders(spheres=(), planes=(), *, sphere_velocity=None, dtype=None) -> Colliders:
-    """Collect Sphere/Plane objects (single or batched) into one Colliders record (no frame axis)."""
+    """Collect Sphere/Plane objects (single or batched) into one Colliders record (no frame axis).
+
+    Shapes: spheres' centres (k, 3) m, radii (k,) m, planes' normals (p, 3), offsets (p,) m -> Colliders
+      with those leaves.
+    """
     dtype = dtype or jnp.zeros(()).dtype
     if isinstance(spheres, Sphere):
         spheres = [spheres]
@@ -71,7 +75,10 @@ def make_colliders(spheres=(), planes=(), *, sphere_velocity=None, dtype=None) -
 
 
 def as_colliders(obj, dtype=None) -> Colliders | None:
-    """None, a Colliders, a Sphere, a Plane, or a list/tuple of them -> Colliders (or None)."""
+    """None, a Colliders, a Sphere, a Plane, or a list/tuple of them -> Colliders (or None).
+
+    Shapes: as `make_colliders`: (k, 3) / (k,) sphere and (p, 3) / (p,) plane leaves.
+    """
     if obj is None or isinstance(obj, Colliders):
         return obj
     if isinstance(obj, Sphere | Plane):

@@ -241,7 +241,11 @@ def coupled_rollout(
 
 def body_colliders(bodies: Sequence[RigidBody]) -> Colliders:
     """Sphere colliders (and their velocities) for the sphere bodies of one frame, e.g. to render
-    or to tessellate-and-push-out the surface with `surface.push_out_of_spheres`."""
+    or to tessellate-and-push-out the surface with `surface.push_out_of_spheres`.
+
+    Shapes: bodies' positions (3,) m and radii () m -> Colliders with (k, 3) centres and velocities, (k,)
+      radii.
+    """
     sph = [b for b in bodies if b.shape == "sphere"]
     dtype = bodies[0].position.dtype if bodies else jnp.zeros(()).dtype
     return Colliders(

@@ -81,7 +81,10 @@ def cg(matvec, b, *, tol, maxiter, precond=None):
 
 
 def bicgstab(matvec, b, *, tol, maxiter):
-    """Matrix-free BiCGSTAB for a general (non-symmetric) operator; a plain while-loop."""
+    """Matrix-free BiCGSTAB for a general (non-symmetric) operator; a plain while-loop.
+
+    Shapes: b (...) any shape, matvec (...) -> (...) -> solution with b's shape.
+    """
     bb = jnp.sum(b * b)
     stop = (tol * tol) * bb
     safe = lambda d: jnp.where(jnp.abs(d) > 0, d, 1.0)
@@ -319,13 +322,19 @@ def step(
 
 
 def symplectic_euler(net, sim, material, state, colliders=None, *, pin_target=None) -> ClothState:
-    """One frame with the explicit symplectic integrator, whatever sim.integrator says."""
+    """One frame with the explicit symplectic integrator, whatever sim.integrator says.
+
+    Shapes: state x, v (rows, cols, 3); pin_target (rows, cols, 3) m -> state (rows, cols, 3).
+    """
     sim = dataclasses.replace(sim, integrator="symplectic")
     return step(net, sim, material, state, colliders, pin_target=pin_target)
 
 
 def implicit_euler(net, sim, material, state, colliders=None, *, pin_target=None) -> ClothState:
-    """One frame with the implicit (backward Euler) integrator, whatever sim.integrator says."""
+    """One frame with the implicit (backward Euler) integrator, whatever sim.integrator says.
+
+    Shapes: state x, v (rows, cols, 3); pin_target (rows, cols, 3) m -> state (rows, cols, 3).
+    """
     sim = dataclasses.replace(sim, integrator="implicit")
     return step(net, sim, material, state, colliders, pin_target=pin_target)
 

@@ -82,12 +82,19 @@ class MassSpring:
 
 
 def mass_spring_range(name: str) -> str:
+    """Allowed range of a MassSpring field as text, e.g. "(0, inf)".
+
+    Shapes: none (a field name -> its range as text).
+    """
     lo, inclusive, _, _ = MASS_SPRING_FIELDS[name]
     return f"{'[' if inclusive else '('}{lo:g}, inf)"
 
 
 def check_mass_spring_value(name: str, value) -> float:
-    """Validate one field; returns it as float. Raises ValueError naming field and range."""
+    """Validate one field; returns it as float. Raises ValueError naming field and range.
+
+    Shapes: value () -> Python float.
+    """
     if name not in MASS_SPRING_FIELDS:
         raise ValueError(
             f"mass-spring material: unknown field {name!r}; allowed: {sorted(MASS_SPRING_FIELDS)}"
@@ -129,7 +136,10 @@ def make_mass_spring(dtype=None, *, lumping: str = "uniform", **fields) -> MassS
 
 
 def validate_mass_spring(ms: MassSpring) -> MassSpring:
-    """Eagerly check a concrete MassSpring; returns it unchanged."""
+    """Eagerly check a concrete MassSpring; returns it unchanged.
+
+    Shapes: MassSpring leaves () each, unchanged.
+    """
     for name in MASS_SPRING_FIELDS:
         check_mass_spring_value(name, np.asarray(getattr(ms, name)))
     if ms.lumping not in LUMPINGS:
@@ -237,7 +247,10 @@ def total_forces(net, ms: MassSpring, x, v, gravity, wind):
 
 
 def elastic_energy(net, ms: MassSpring, x):
-    """sum 1/2 k (L - L0)^2 over all springs, J; minus its gradient is `spring_forces` at v = 0."""
+    """sum 1/2 k (L - L0)^2 over all springs, J; minus its gradient is `spring_forces` at v = 0.
+
+    Shapes: x (rows, cols, 3) m -> () J.
+    """
     xp = jnp.moveaxis(x, -1, 0)
     coefs = _coefs(ms)
     e = 0.0
@@ -252,14 +265,20 @@ def elastic_energy(net, ms: MassSpring, x):
 
 
 def potential_energy(net, ms: MassSpring, x, gravity):
-    """Elastic energy plus gravitational energy -sum m g.x, J."""
+    """Elastic energy plus gravitational energy -sum m g.x, J.
+
+    Shapes: x (rows, cols, 3) m, gravity (3,) m/s^2 -> () J.
+    """
     mass = node_mass(net, ms)
     g = jnp.asarray(gravity)[None, None, :]
     return elastic_energy(net, ms, x) - jnp.sum(mass[..., None] * x * g)
 
 
 def kinetic_energy(net, ms: MassSpring, v):
-    """sum 1/2 m |v|^2, J."""
+    """sum 1/2 m |v|^2, J.
+
+    Shapes: v (rows, cols, 3) m/s -> () J.
+    """
     return 0.5 * jnp.sum(node_mass(net, ms) * jnp.sum(v * v, -1))
 
 

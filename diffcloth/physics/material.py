@@ -51,12 +51,19 @@ MATERIAL_FIELDS: dict[str, tuple[float, bool, str, float]] = {
 
 
 def material_range(name: str) -> str:
+    """Allowed range of a Material field as text, e.g. "[0, inf)".
+
+    Shapes: none (a field name -> its range as text).
+    """
     lo, inclusive, _, _ = MATERIAL_FIELDS[name]
     return f"{'[' if inclusive else '('}{lo:g}, inf)"
 
 
 def check_material_value(name: str, value) -> float:
-    """Validate one material field; returns it as float. Raises ValueError naming field and range."""
+    """Validate one material field; returns it as float. Raises ValueError naming field and range.
+
+    Shapes: value () -> Python float.
+    """
     if name not in MATERIAL_FIELDS:
         raise ValueError(f"material: unknown field {name!r}; allowed: {sorted(MATERIAL_FIELDS)}")
     arr = np.asarray(value, dtype=np.float64)
@@ -95,7 +102,10 @@ def make_material(dtype=None, **fields) -> Material:
 
 
 def validate_material(material: Material) -> Material:
-    """Eagerly check a concrete Material (e.g. one built by hand); returns it unchanged."""
+    """Eagerly check a concrete Material (e.g. one built by hand); returns it unchanged.
+
+    Shapes: Material leaves () each, unchanged.
+    """
     for name in MATERIAL_FIELDS:
         check_material_value(name, np.asarray(getattr(material, name)))
     return material
@@ -110,6 +120,8 @@ def to_physical(raw):
     """Map an unconstrained value to a strictly positive one: ~exp(raw) for |raw| < 30.
 
     Finite and > 0 (with a finite gradient) for every finite raw, float32 and float64.
+
+    Shapes: raw (...) -> (...) elementwise.
     """
     raw = jnp.asarray(raw)
     y = _LOG_LO + jax.nn.softplus(raw - _LOG_LO) - jax.nn.softplus(raw - _LOG_HI)
@@ -117,15 +129,24 @@ def to_physical(raw):
 
 
 def to_raw(value):
-    """Inverse of `to_physical` for values well inside (exp(-30), exp(30)): log(value)."""
+    """Inverse of `to_physical` for values well inside (exp(-30), exp(30)): log(value).
+
+    Shapes: value (...) -> (...) elementwise.
+    """
     return jnp.log(jnp.asarray(value))
 
 
 def material_to_raw(material: Material) -> Material:
-    """Every field in unconstrained (log) space. Fields that may be 0 map to a very negative raw."""
+    """Every field in unconstrained (log) space. Fields that may be 0 map to a very negative raw.
+
+    Shapes: Material leaves () each -> the same shapes.
+    """
     return jax.tree_util.tree_map(lambda v: to_raw(jnp.maximum(v, 1e-30)), material)
 
 
 def material_from_raw(raw: Material) -> Material:
-    """Inverse of `material_to_raw`: every field strictly positive."""
+    """Inverse of `material_to_raw`: every field strictly positive.
+
+    Shapes: Material leaves () each -> the same shapes.
+    """
     return jax.tree_util.tree_map(to_physical, raw)

@@ -58,7 +58,10 @@ def _frame_colliders(colliders: Colliders, dt, num_frames: int):
 
 
 def is_per_frame(colliders: Colliders | None) -> bool:
-    """True when the collider arrays carry a leading frame axis."""
+    """True when the collider arrays carry a leading frame axis.
+
+    Shapes: collider leaves (k, 3) static or (T, k, 3) per frame -> bool.
+    """
     return colliders is not None and (
         colliders.spheres.center.ndim == 3 or colliders.planes.normal.ndim == 3
     )
@@ -136,6 +139,8 @@ def advance(net, sim, material, state, *, num_frames: int, colliders=None) -> Cl
 
     Unlike `rollout(...)[-1]` no trajectory is built, so the gradient memory grows sublinearly
     with num_frames (O(sqrt(num_frames)) frame states, see `checkpointed_scan`).
+
+    Shapes: state x, v (rows, cols, 3) -> state (rows, cols, 3).
     """
     if num_frames == 0:
         return state
@@ -275,7 +280,10 @@ def trajectory_ok(net: Net, traj: ClothState, sim: SimSettings | None = None, st
 
 
 def first_bad_frame(net: Net, traj: ClothState, sim=None, state=None) -> int | None:
-    """Eager: index of the first non-finite or blown-up frame, or None."""
+    """Eager: index of the first non-finite or blown-up frame, or None.
+
+    Shapes: traj x, v (T, rows, cols, 3) -> Python int or None.
+    """
     ok = np.asarray(frames_ok(net, traj, sim, state))
     return None if ok.all() else int(np.argmin(ok))
 
@@ -319,6 +327,8 @@ def checked_rollout(
       ValueError: non-finite initial state, bad material values.
       UnstableSimulationError: the trajectory became non-finite or blew up (`frames_ok`); the message
         says "unstable: lower dt, raise num_substeps, or use the implicit integrator".
+
+    Shapes: state x, v (rows, cols, 3) -> trajectory (num_frames, rows, cols, 3).
     """
     validate_state(net, state)
     if hasattr(material, "total_forces_planar"):

@@ -98,6 +98,8 @@ def make_sim(
 
     Raises ValueError for dt <= 0 or non-finite, num_substeps < 1, an unknown integrator, and
     TypeError for non-integer counts.
+
+    Shapes: gravity, wind (3,) m/s^2, m/s; dt () s -> SimSettings with those leaves.
     """
     dt_f = float(np.asarray(dt, np.float64))
     if not math.isfinite(dt_f) or dt_f <= 0:
@@ -138,7 +140,10 @@ def rest_state(net, velocity=None) -> ClothState:
 
 
 def validate_state(net, state: ClothState) -> ClothState:
-    """Eager check of a concrete state: shapes match the net and every value is finite."""
+    """Eager check of a concrete state: shapes match the net and every value is finite.
+
+    Shapes: state x, v (rows, cols, 3), matching the net.
+    """
     for name in ("x", "v"):
         arr = np.asarray(getattr(state, name))
         if arr.shape != (net.rows, net.cols, 3):

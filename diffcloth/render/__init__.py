@@ -1,9 +1,13 @@
 """diffcloth.render stage."""
+
 # ruff: noqa: F401  (re-exports)
+import sys
+import types
+import warnings
 
 # viewing, culling, rasterizer, analytic spheres
 # plain meshes (smooth vertex normals) and box bodies as triangles
-from diffcloth.render import boxes, mesh
+from diffcloth.render import boxes, frame, mesh
 from diffcloth.render.boxes import BoxPoses, box_triangles
 from diffcloth.render.camera import (
     Camera,
@@ -30,6 +34,12 @@ from diffcloth.render.camera import (
 )
 from diffcloth.render.capture import Capture, make_capture, perturb_camera
 from diffcloth.render.culling import facing_camera, frustum_planes, sphere_in_frustum
+from diffcloth.render.frame import (  # one frame; the module was render/render.py
+    PLANE_COLOR,
+    frame_shadow_maps,
+    render,
+    surface_gbuffer,
+)
 
 # shading (lights, appearance, textures, G-buffer shading modes); `shade` stays the module name
 from diffcloth.render.lights import (
@@ -52,12 +62,6 @@ from diffcloth.render.raster import (
     rasterize_gbuffer,
     render_mesh,
 )
-from diffcloth.render.render import (  # the function shadows its module
-    PLANE_COLOR,
-    frame_shadow_maps,
-    render,
-    surface_gbuffer,
-)
 from diffcloth.render.shade import MODES as SHADING_MODES
 from diffcloth.render.shade import ShadingBuffer, light_vertices
 from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility, sphere_visibility
@@ -72,3 +76,24 @@ from diffcloth.render.textures import (
     make_textures,
     sky_cube_map,
 )
+
+
+class _RenamedModule(types.ModuleType):
+    """`diffcloth.render.render` as a module path (deprecated): the module is now
+    `diffcloth.render.frame`, so the function `diffcloth.render.render` no longer shares its name
+    with a module. Old `from diffcloth.render.render import X` imports keep working, with a
+    DeprecationWarning."""
+
+    def __getattr__(self, name):
+        if name.startswith("__"):  # introspection (pytest, inspect): not an old import
+            raise AttributeError(name)
+        warnings.warn(
+            "the module diffcloth.render.render is renamed diffcloth.render.frame "
+            "(diffcloth.render.render is the render function)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(frame, name)
+
+
+sys.modules[__name__ + ".render"] = _RenamedModule(__name__ + ".render")

@@ -169,12 +169,12 @@ def perspective(fov_y_degrees, aspect, near, far):
 
 
 def frustum(left, right, bottom, top, near, far):
-    """glFrustum: perspective projection of the view-space box on the near plane (m)."""
-    _check_near_far("frustum", near, far, perspective=True)
-    _check_box("frustum", left, right, bottom, top)
-    dtype = _dtype(left, right, bottom, top, near, far)
-    l, r, b, t, n, f = (jnp.asarray(v, dtype) for v in (left, right, bottom, top, near, far))
-    z = jnp.zeros((), dtype)
+    """glFrustum: perspective projection of the view-space box on the near plane (m).
+
+    Shapes: scalars () m -> (4, 4) projection matrix.
+    """
+    l, r, b, t, n, f, z = _view_box("frustum", left, right, bottom, top, near, far, True)
+    dtype = z.dtype
     return jnp.stack(
         [
             jnp.stack([2 * n / (r - l), z, (r + l) / (r - l), z]),
@@ -183,6 +183,15 @@ def frustum(left, right, bottom, top, near, far):
             jnp.stack([z, z, -jnp.ones((), dtype), z]),
         ]
     )
+
+
+def _view_box(name, left, right, bottom, top, near, far, perspective: bool):
+    """Checked view-space box as arrays of one dtype: l, r, b, t, n, f and a zero, each ()."""
+    _check_near_far(name, near, far, perspective=perspective)
+    _check_box(name, left, right, bottom, top)
+    dtype = _dtype(left, right, bottom, top, near, far)
+    box = (jnp.asarray(v, dtype) for v in (left, right, bottom, top, near, far))
+    return (*box, jnp.zeros((), dtype))
 
 
 def _check_box(name, left, right, bottom, top):
@@ -196,12 +205,12 @@ def _check_box(name, left, right, bottom, top):
 
 
 def orthographic(left, right, bottom, top, near, far):
-    """glOrtho: parallel projection of the view-space box [l, r] x [b, t] x [-far, -near] (m)."""
-    _check_near_far("orthographic", near, far, perspective=False)
-    _check_box("orthographic", left, right, bottom, top)
-    dtype = _dtype(left, right, bottom, top, near, far)
-    l, r, b, t, n, f = (jnp.asarray(v, dtype) for v in (left, right, bottom, top, near, far))
-    z = jnp.zeros((), dtype)
+    """glOrtho: parallel projection of the view-space box [l, r] x [b, t] x [-far, -near] (m).
+
+    Shapes: scalars () m -> (4, 4) projection matrix.
+    """
+    l, r, b, t, n, f, z = _view_box("orthographic", left, right, bottom, top, near, far, False)
+    dtype = z.dtype
     return jnp.stack(
         [
             jnp.stack([2 / (r - l), z, z, -(r + l) / (r - l)]),
@@ -239,7 +248,10 @@ def oblique(alpha_degrees, scale, left, right, bottom, top, near, far, depth_ref
 
 
 def cavalier(left, right, bottom, top, near, far, depth_ref=0.0, alpha_degrees=45.0):
-    """Cavalier oblique projection (receding axis at full length)."""
+    """Cavalier oblique projection (receding axis at full length).
+
+    Shapes: scalars () m, degrees -> (4, 4) projection matrix.
+    """
     return oblique(alpha_degrees, 1.0, left, right, bottom, top, near, far, depth_ref)
 
 
@@ -255,6 +267,8 @@ def axonometric_view(kind: str, target, distance):
 
     kind: one of "isometric", "dimetric", "trimetric", "front", "top", "side" (VIEW_DIRECTIONS).
     Use with an orthographic projection.
+
+    Shapes: target (3,) m, distance () m -> (4, 4) view matrix.
     """
     if kind not in VIEW_DIRECTIONS:
         raise ValueError(
@@ -268,12 +282,18 @@ def axonometric_view(kind: str, target, distance):
     return look_at(target + jnp.asarray(distance, dtype) * d, target, jnp.asarray(up, dtype))
 
 
-isometric_view = lambda target, distance: axonometric_view("isometric", target, distance)
-dimetric_view = lambda target, distance: axonometric_view("dimetric", target, distance)
-trimetric_view = lambda target, distance: axonometric_view("trimetric", target, distance)
-front_view = lambda target, distance: axonometric_view("front", target, distance)
-top_view = lambda target, distance: axonometric_view("top", target, distance)
-side_view = lambda target, distance: axonometric_view("side", target, distance)
+def _named_view(kind: str):
+    def view(target, distance):
+        return axonometric_view(kind, target, distance)
+
+    view.__name__ = view.__qualname__ = f"{kind}_view"
+    view.__doc__ = f'`axonometric_view("{kind}", ...)`: target (3,) m, distance () m -> (4, 4).'
+    return view
+
+
+isometric_view, dimetric_view, trimetric_view, front_view, top_view, side_view = map(
+    _named_view, ("isometric", "dimetric", "trimetric", "front", "top", "side")
+)
 
 
 @jax.tree_util.register_dataclass
@@ -380,6 +400,8 @@ def camera_from_matrices(
     Raises:
       ValueError: bad size, near >= far, non-finite, singular or non-orthonormal view matrix,
       singular projection.
+
+    Shapes: view, projection (4, 4) -> Camera.
     """
     _check_size(width, height)
     if kind not in PROJECTION_KINDS:

@@ -51,6 +51,9 @@ def make_capture(
 
     Raises ValueError naming the field for a wrong shape, a non-finite value, exposure <= 0 or a
     background outside [0, 1].
+
+    Shapes: exposure (num_cameras,) or (), rotation, translation, background (num_cameras, 3) or (3,) ->
+      Capture with (num_cameras, ...) leaves.
     """
     if not isinstance(num_cameras, int | np.integer) or num_cameras < 1:
         raise ValueError(f"num_cameras must be an int >= 1, got {num_cameras!r}")

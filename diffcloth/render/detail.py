@@ -28,7 +28,10 @@ def bump_detail(surface, camera, textures) -> float:
     """Fraction (0..1) of the bump map's slope signal left after mip filtering, over the pixels
     that see the surface: RMS of the filtered slopes / RMS of the level-0 slopes at the same uv.
     1 when every texel is resolved, ~0 when the weave is averaged away. nan without a bump map or
-    covered pixels."""
+    covered pixels.
+
+    Shapes: surface positions (n, 3), uv (n, 2) -> a Python float ().
+    """
     if textures is None or textures.bump is None:
         return float("nan")
     f2, s2 = (float(a) for a in _slope_power(surface, camera, textures))
@@ -38,8 +41,8 @@ def bump_detail(surface, camera, textures) -> float:
 @jax.jit
 def _slope_power(surface, camera, textures):
     """(mean squared filtered slope, mean squared level-0 slope) over covered pixels."""
+    from diffcloth.render.frame import surface_gbuffer
     from diffcloth.render.lights import make_appearance, make_lights
-    from diffcloth.render.render import surface_gbuffer
     from diffcloth.render.textures import sample_2d, sample_mip, uv_lod
 
     dtype = surface.positions.dtype
@@ -62,7 +65,10 @@ def _slope_power(surface, camera, textures):
 def check_bump_detail(scene, names, *, threshold: float = 0.1) -> float | None:
     """Warn (BumpDetailWarning) when `names` includes "bump_strength" and, in every camera, less
     than `threshold` of the bump signal survives mip filtering on the scene's first rendered
-    state. Returns the best camera's `bump_detail`, or None when not applicable."""
+    state. Returns the best camera's `bump_detail`, or None when not applicable.
+
+    Shapes: none (a Scene in, a Python float () or None out).
+    """
     if "bump_strength" not in names or scene.textures is None or scene.textures.bump is None:
         return None
     from diffcloth import surface as surf_mod

@@ -262,12 +262,16 @@ _APPEARANCE_DEFAULTS = dict(
     second_pass_alpha=0.5,
 )
 
-_POSITIVE = ("shininess", "minnaert_k", "ior")
-_NONNEGATIVE = ("sphere_distance_falloff", "sphere_rim_power", "second_pass_alpha")
+# appearance fields that must be > 0 and >= 0 (checked by make_appearance, used for fit ranges)
+POSITIVE_FIELDS = ("shininess", "minnaert_k", "ior")
+NONNEGATIVE_FIELDS = ("sphere_distance_falloff", "sphere_rim_power", "second_pass_alpha")
 
 
 def appearance_fields() -> tuple[str, ...]:
-    """Names of the `Appearance` fields, in order (the keys [appearance] allows)."""
+    """Names of the `Appearance` fields, in order (the keys [appearance] allows).
+
+    Shapes: none (names).
+    """
     return tuple(_APPEARANCE_DEFAULTS)
 
 
@@ -294,9 +298,9 @@ def make_appearance(*, dtype=None, **values) -> Appearance:
                 f"appearance {name} must have shape {np.shape(default)}, got {v.shape}"
             )
         _check_finite(f"appearance {name}", v)
-        if name in _POSITIVE and np.any(v <= 0):
+        if name in POSITIVE_FIELDS and np.any(v <= 0):
             raise ValueError(f"appearance {name} must be > 0 (range (0, inf)), got {v.tolist()}")
-        if name in _NONNEGATIVE and np.any(v < 0):
+        if name in NONNEGATIVE_FIELDS and np.any(v < 0):
             raise ValueError(f"appearance {name} must be >= 0 (range [0, inf)), got {v.tolist()}")
         out[name] = jnp.asarray(v, dtype)
     return Appearance(**out)

@@ -28,12 +28,19 @@ ORDER = 4  # cubic: 4 control points per patch and direction
 
 
 def check_basis(basis: str) -> None:
+    """Raise ValueError unless `basis` is one of BASES.
+
+    Shapes: none (a basis name is checked).
+    """
     if basis not in BASES:
         raise ValueError(f"basis must be one of {BASES}, got {basis!r}")
 
 
 def check_num_points(num_points: int, basis: str, name: str = "num_points") -> None:
-    """Raise ValueError unless `num_points` control points make at least one patch of `basis`."""
+    """Raise ValueError unless `num_points` control points make at least one patch of `basis`.
+
+    Shapes: none (integer counts are checked).
+    """
     check_basis(basis)
     if num_points < ORDER:
         raise ValueError(
@@ -48,7 +55,10 @@ def check_num_points(num_points: int, basis: str, name: str = "num_points") -> N
 
 
 def num_patches(num_points: int, basis: str) -> int:
-    """Number of patches along one direction of a net with `num_points` control points."""
+    """Number of patches along one direction of a net with `num_points` control points.
+
+    Shapes: none (integers).
+    """
     check_num_points(num_points, basis)
     return (num_points - 1) // 3 if basis == "bezier" else num_points - 3
 
@@ -119,7 +129,10 @@ def patch_weights(num_points: int, patch, s, basis: str = "bspline", deriv: int 
 
 
 def basis_matrix(num_points: int, t, basis: str = "bspline", deriv: int = 0) -> np.ndarray:
-    """Weights (len(t), num_points) at global parameters t in [0, num_patches]."""
+    """Weights (len(t), num_points) at global parameters t in [0, num_patches].
+
+    Shapes: t (k,) -> (k, num_points) numpy.
+    """
     t = np.atleast_1d(np.asarray(t, dtype=np.float64))
     npatch = num_patches(num_points, basis)
     patch = np.clip(np.floor(t).astype(np.int64), 0, npatch - 1)
@@ -128,7 +141,10 @@ def basis_matrix(num_points: int, t, basis: str = "bspline", deriv: int = 0) -> 
 
 def sample_parameters(num_points: int, level: int, basis: str = "bspline") -> np.ndarray:
     """The tessellation's parameter samples: num_patches * level values spread uniformly over
-    [0, num_patches], both ends included. One connected grid: no duplicated seam vertices."""
+    [0, num_patches], both ends included. One connected grid: no duplicated seam vertices.
+
+    Shapes: -> (num_patches * level + 1,) numpy.
+    """
     npatch = num_patches(num_points, basis)
     return np.linspace(0.0, float(npatch), npatch * level)
 

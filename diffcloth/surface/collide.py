@@ -110,6 +110,8 @@ def collide_surface(
       offset: push-out offset in m (>= 0), as for `push_out_of_spheres`.
     Returns:
       A Surface with moved positions and updated normals, tangents and bitangents.
+
+    Shapes: surface positions, normals (n, 3); sphere centres (k, 3) m, radii (k,) m -> Surface (n, 3).
     """
     if normals not in ("sphere", "grid"):
         raise ValueError(f"normals must be 'sphere' or 'grid', got {normals!r}")

@@ -94,35 +94,25 @@ def displace_along_normals(surface: Surface, height) -> Surface:
     return dataclasses.replace(surface, positions=pos, normals=n, tangents=t, bitangents=b)
 
 
+# deform kind -> (height kernel, its own keyword fields besides amplitude, wavelength, speed)
+_KERNELS = {"waves": (waves, ("direction", "phase")), "ripples": (ripples, ("center", "decay"))}
+
+
 def apply_deformations(surface: Surface, entries, time) -> Surface:
     """Sum of the [[deform]] entries' heights at `time` (s), on the surface's uv, displaced along
     the normals (`displace_along_normals`). entries: objects with the fields of
-    `config.render.DeformConfig` (kind "waves" or "ripples"); none: the surface unchanged."""
+    `config.render.DeformConfig` (kind "waves" or "ripples"); none: the surface unchanged.
+
+    Shapes: surface positions (n, 3), uv (n, 2); time () s -> Surface (n, 3).
+    """
     if not entries:
         return surface
     uv = surface.uv
     h = jnp.zeros(uv.shape[:1], surface.positions.dtype)
     for e in entries:
-        if e.kind == "waves":
-            h = h + waves(
-                uv,
-                time,
-                amplitude=e.amplitude,
-                wavelength=e.wavelength,
-                speed=e.speed,
-                direction=e.direction,
-                phase=e.phase,
-            )
-        elif e.kind == "ripples":
-            h = h + ripples(
-                uv,
-                time,
-                amplitude=e.amplitude,
-                wavelength=e.wavelength,
-                speed=e.speed,
-                center=e.center,
-                decay=e.decay,
-            )
-        else:
+        if e.kind not in _KERNELS:
             raise ValueError(f"deform kind must be 'waves' or 'ripples', got {e.kind!r}")
+        kernel, own = _KERNELS[e.kind]
+        keys = ("amplitude", "wavelength", "speed") + own
+        h = h + kernel(uv, time, **{k: getattr(e, k) for k in keys})
     return displace_along_normals(surface, h)

@@ -13,7 +13,10 @@ __all__ = ["auto_level", "focal_length_pixels", "projected_size_pixels", "select
 
 
 def focal_length_pixels(fov_y_degrees: float, height_pixels: int) -> float:
-    """Focal length in pixels of a perspective camera: height / (2 tan(fov_y / 2))."""
+    """Focal length in pixels of a perspective camera: height / (2 tan(fov_y / 2)).
+
+    Shapes: none (Python scalars).
+    """
     if not 0 < fov_y_degrees < 180:
         raise ValueError(f"fov_y_degrees must be in (0, 180), got {fov_y_degrees!r}")
     if height_pixels <= 0:
@@ -25,6 +28,8 @@ def projected_size_pixels(bounding_radius: float, distance: float, focal_pixels:
     """Approximate on-screen diameter (pixels) of a bounding sphere seen at `distance` (m).
 
     Uses the exact angular size 2 asin(r / d) of the sphere; inf when the camera is inside it.
+
+    Shapes: none (Python scalars).
     """
     if not bounding_radius >= 0:
         raise ValueError(f"bounding_radius must be >= 0 (m), got {bounding_radius!r}")

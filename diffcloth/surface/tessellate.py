@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth import _math
+from diffcloth._math import dtype_eps
 from diffcloth.surface import basis as _basis
 
 __all__ = [
@@ -88,7 +88,8 @@ def vertex_grid_shape(net_shape, level: int, basis: str = "bspline") -> tuple[in
 
 
 @functools.lru_cache(maxsize=64)
-def _faces_np(vrows: int, vcols: int) -> np.ndarray:
+def grid_faces_np(vrows: int, vcols: int) -> np.ndarray:
+    """(2 (vrows - 1) (vcols - 1), 3) int triangle faces of a vrows x vcols vertex grid (numpy)."""
     i, j = np.meshgrid(np.arange(vrows - 1), np.arange(vcols - 1), indexing="ij")
     a = (i * vcols + j).ravel()
     b, c, d = a + 1, a + vcols + 1, a + vcols  # b: +u, c: +u+v, d: +v
@@ -102,7 +103,7 @@ def _faces_np(vrows: int, vcols: int) -> np.ndarray:
 def grid_faces(grid_shape) -> jax.Array:
     """Triangles (2 (vrows-1)(vcols-1), 3) int32 of a row-major vertex grid, wound so that
     cross(p1 - p0, p2 - p0) points along dP/du x dP/dv."""
-    return jnp.asarray(_faces_np(int(grid_shape[0]), int(grid_shape[1])))
+    return jnp.asarray(grid_faces_np(int(grid_shape[0]), int(grid_shape[1])))
 
 
 @functools.lru_cache(maxsize=64)
@@ -129,7 +130,7 @@ def _normalize(v, fallback):
     """Component-wise safe normalisation (per-element double where, as in _math.safe_normalize)."""
     x, y, z = v
     sq = x * x + y * y + z * z
-    ok = sq > _math._eps(sq)
+    ok = sq > dtype_eps(sq)
     inv = jax.lax.rsqrt(jnp.where(ok, sq, 1.0))
     return tuple(jnp.where(ok, c * inv, f) for c, f in zip(v, fallback, strict=True))
 
@@ -270,7 +271,7 @@ def tessellate(control_points, level: int = 13, basis: str = "bspline", *, flip:
     if flip:
         dv = -dv
     n, t, b = _frames(tuple(du), tuple(dv))
-    faces = _faces_np(vrows, vcols)
+    faces = grid_faces_np(vrows, vcols)
     if flip:
         faces = faces[:, ::-1]
     return Surface(

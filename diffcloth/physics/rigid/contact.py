@@ -20,14 +20,20 @@ from diffcloth.physics.rigid.quat import box_vertices, quat_to_matrix
 
 
 def contact_sphere_sphere(a: RigidBody, b: RigidBody) -> Contact:
-    """Contact of sphere a with sphere b; coincident centres separate along +y."""
+    """Contact of sphere a with sphere b; coincident centres separate along +y.
+
+    Shapes: body positions (3,) m -> Contact: depth () m, normal (3,), point (3,) m.
+    """
     n = safe_normalize(a.position - b.position)
     depth = a.radius + b.radius - safe_norm(a.position - b.position)
     return Contact(depth, n, a.position - n * (a.radius - depth / 2))
 
 
 def contact_sphere_plane(a: RigidBody, normal: jax.Array, offset: jax.Array) -> Contact:
-    """Contact of sphere a with the plane {p : normal . p = offset} (free side above)."""
+    """Contact of sphere a with the plane {p : normal . p = offset} (free side above).
+
+    Shapes: normal (3,), offset () m -> Contact: depth () m, normal (3,), point (3,) m.
+    """
     depth = a.radius - (normal @ a.position - offset)
     return Contact(depth, normal, a.position - normal * (a.radius - depth / 2))
 
@@ -80,7 +86,10 @@ def _box_axes_contact(box: RigidBody, points: jax.Array):
 
 def contact_box_sphere(a: RigidBody, b: RigidBody) -> Contact:
     """Box a against sphere b: the sphere centre's closest point on the box; inside the box the
-    nearest face decides. Normal from the sphere to the box."""
+    nearest face decides. Normal from the sphere to the box.
+
+    Shapes: body positions (3,) m -> Contact: depth () m, normal (3,), point (3,) m.
+    """
     rot = quat_to_matrix(a.orientation)
     local = rot.T @ (b.position - a.position)
     clamped = jnp.clip(local, -a.half_extents, a.half_extents)
@@ -119,12 +128,18 @@ def _patch_box_box(a: RigidBody, b: RigidBody) -> _Patch:
 def contact_box_box(a: RigidBody, b: RigidBody) -> Contact:
     """Box a against box b: every corner of each box against the other's face planes (the seed's
     OBB test). The deepest corner gives depth and face normal; the point is the mean of the
-    corners pressing on that face. Edge-edge contacts are not detected."""
+    corners pressing on that face. Edge-edge contacts are not detected.
+
+    Shapes: body positions (3,) m -> Contact: depth () m, normal (3,), point (3,) m.
+    """
     return _patch_box_box(a, b).main
 
 
 def contact(a: RigidBody, b: RigidBody) -> Contact:
-    """Contact between two bodies of any shapes (dispatch on the static shapes)."""
+    """Contact between two bodies of any shapes (dispatch on the static shapes).
+
+    Shapes: body positions (3,) m -> Contact: depth () m, normal (3,), point (3,) m.
+    """
     kinds = (a.shape, b.shape)
     if kinds == ("sphere", "sphere"):
         return contact_sphere_sphere(a, b)
@@ -137,7 +152,10 @@ def contact(a: RigidBody, b: RigidBody) -> Contact:
 
 
 def contact_plane(a: RigidBody, normal: jax.Array, offset: jax.Array) -> Contact:
-    """Contact between a body and a static plane."""
+    """Contact between a body and a static plane.
+
+    Shapes: normal (3,), offset () m -> Contact: depth () m, normal (3,), point (3,) m.
+    """
     if a.shape == "sphere":
         return contact_sphere_plane(a, normal, offset)
     return contact_box_plane(a, normal, offset)

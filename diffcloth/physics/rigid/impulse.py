@@ -178,7 +178,10 @@ def _put(body: RigidBody, d: _Dyn) -> RigidBody:
 
 
 def collide_pair(a: RigidBody, b: RigidBody) -> tuple[RigidBody, RigidBody]:
-    """Detect and resolve one contact between two bodies (no-op when apart or separating)."""
+    """Detect and resolve one contact between two bodies (no-op when apart or separating).
+
+    Shapes: RigidBody leaves: position, velocity (3,), orientation (4,) -> the same shapes.
+    """
     e = (a.restitution + b.restitution) / 2
     mu = (a.friction + b.friction) / 2
     if a.shape == b.shape == "box":
@@ -190,7 +193,10 @@ def collide_pair(a: RigidBody, b: RigidBody) -> tuple[RigidBody, RigidBody]:
 
 
 def collide_plane(a: RigidBody, normal: jax.Array, offset: jax.Array) -> RigidBody:
-    """Detect and resolve a contact between a body and a static plane."""
+    """Detect and resolve a contact between a body and a static plane.
+
+    Shapes: normal (3,), offset () m; RigidBody leaves (3,) / (4,) -> the same shapes.
+    """
     ground = _static_dyn(a.position.dtype)
     if a.shape == "box":
         patch = _patch_box_plane(a, normal, offset)

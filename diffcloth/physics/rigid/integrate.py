@@ -13,11 +13,7 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 
-from diffcloth.physics.rigid.bodies import (
-    RigidBody,
-    RigidSettings,
-    Thrusters,
-)
+from diffcloth.physics.rigid.bodies import RigidBody, RigidSettings, Thrusters
 from diffcloth.physics.rigid.impulse import collide_pair, collide_plane
 from diffcloth.physics.rigid.quat import (
     _inv_inertia_world,
@@ -103,7 +99,10 @@ def _plane_list(planes: Plane | None, dtype):
 
 
 def collide_all(bodies: Sequence[RigidBody], planes: Plane | None = None) -> tuple[RigidBody, ...]:
-    """One sequential pass over all body pairs (i < j), then every body against every plane."""
+    """One sequential pass over all body pairs (i < j), then every body against every plane.
+
+    Shapes: RigidBody leaves (3,) / (4,); planes' normals (p, 3), offsets (p,) -> the same body shapes.
+    """
     bodies = list(bodies)
     for i, j in itertools.combinations(range(len(bodies)), 2):
         bodies[i], bodies[j] = collide_pair(bodies[i], bodies[j])
@@ -232,5 +231,8 @@ def rigid_rollout(
 
 
 def body_at(trajectory: Sequence[RigidBody], frame: int) -> tuple[RigidBody, ...]:
-    """The bodies at one frame of a `rigid_rollout` trajectory."""
+    """The bodies at one frame of a `rigid_rollout` trajectory.
+
+    Shapes: trajectory leaves (T, ...) -> one frame's leaves (...).
+    """
     return tuple(jax.tree_util.tree_map(lambda a: a[frame], b) for b in trajectory)

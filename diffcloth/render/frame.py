@@ -1,4 +1,5 @@
-"""Render a tessellated cloth surface (plus analytic spheres) with one of the seed's shading modes.
+"""One frame (module `frame`; the function is `diffcloth.render.render`): render a tessellated cloth
+surface (plus analytic spheres) with one of the seed's shading modes.
 
 Surface --rasterize_gbuffer--> per-pixel attributes --shade--> premultiplied RGBA
         --antialias (silhouettes)--> + ray-cast spheres (depth-composited) --> over background
@@ -32,9 +33,9 @@ PLANE_COLOR = (0.6, 0.6, 0.6)
 
 @functools.lru_cache(maxsize=32)
 def _grid_neighbors_np(grid_shape, flipped: bool = False):
-    from diffcloth.surface.tessellate import _faces_np
+    from diffcloth.surface.tessellate import grid_faces_np
 
-    faces = _faces_np(*grid_shape)
+    faces = grid_faces_np(*grid_shape)
     if flipped:  # tessellate(flip=True) reverses each face's vertex order (faces[:, ::-1])
         faces = faces[:, ::-1]
     with jax.ensure_compile_time_eval():  # concrete even when first called under a trace
@@ -202,7 +203,10 @@ def _plane_layer(
 
 
 def safe_div_neg(side, nd):
-    """Ray parameter t = side / -nd of a plane hit; 0 where the ray is parallel."""
+    """Ray parameter t = side / -nd of a plane hit; 0 where the ray is parallel.
+
+    Shapes: side (...), nd (...) -> (...) elementwise.
+    """
     ok = nd < 0
     return jnp.where(ok, side / jnp.where(ok, -nd, 1.0), 0.0)
 
@@ -227,7 +231,11 @@ def _occluder_mesh(surface, occluders):
 
 def frame_shadow_maps(surface, lights: Lights, *, spheres=None, occluders=None, size: int = 256):
     """Shadow data of one frame: the cloth `surface` (plus `occluders` triangles) as the mesh
-    occluder, `spheres` analytic; None when no light casts shadows (see `shadows.shadow_maps`)."""
+    occluder, `spheres` analytic; None when no light casts shadows (see `shadows.shadow_maps`).
+
+    Shapes: surface positions (n, 3) m, sphere centres (k, 3) m, occluders (q, 3) / (r, 3) -> ShadowMaps
+      (num_lights, size, size).
+    """
     if not lights.casts_shadows:
         return None
     return build_shadow_maps(

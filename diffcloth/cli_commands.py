@@ -1,0 +1,276 @@
+"""The CLI's config pre-checks and its two main subcommands, `simulate` and `render` (`cli` holds
+the parser, `fit`, `view`, `bench` and the error handling, and re-exports these names)."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+
+def check_config(path, command: str = "render"):
+    """The checks `diffcloth COMMAND CONFIG` runs before any work, without running it: the config
+    (ConfigError), the memory estimate (MemoryLimitError) and, for render and fit, the Scene and
+    the [truth]/[fit.initial] values against it. Returns the Scene (or the Config for simulate).
+    """
+    from diffcloth import memory
+    from diffcloth.config import ConfigError, load_config
+    from diffcloth.scene import build_scene
+
+    if command not in ("simulate", "render", "fit"):
+        raise ValueError(f"command={command!r}; allowed: simulate, render, fit")
+    config = load_config(path)
+    if command == "fit" and config.fit is None:
+        raise ConfigError(f"{path}: missing [fit] section")
+    multistart = config.fit.multistart if command == "fit" else 1
+    memory.check_memory(
+        memory.estimate_memory(
+            memory.JobSizes.from_config(config), command, multistart=multistart
+        ),  # fmt: skip
+        f"{command} {path}",
+    )
+    if command == "simulate":
+        from diffcloth.config import build_physics
+        from diffcloth.scene import build_bodies
+
+        build_physics(config)
+        build_bodies(config)
+        return config
+    scene = build_scene(config)
+    if command == "fit":
+        from diffcloth.experiment import _check_values
+
+        _check_values(scene, config.fit.truth, "truth")
+        _check_values(scene, config.fit.initial, "fit.initial")
+    return scene
+
+
+def _err(msg: str) -> None:
+    print(f"error: {msg}", file=sys.stderr, flush=True)
+
+
+def _check_positive(name: str, value, lo: int = 1) -> None:
+    from diffcloth.outdir import UsageError
+
+    if value is not None and value < lo:
+        raise UsageError(f"{name} must be >= {lo}, got {value}")
+
+
+def _simulate(args) -> int:
+    import jax
+
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    from diffcloth import memory, physics
+    from diffcloth.config import build_physics, load_config
+    from diffcloth.outdir import OutputDir
+    from diffcloth.physics.rollout import ADVICE
+    from diffcloth.pipeline import split_colliders
+    from diffcloth.scene import build_bodies
+
+    _check_positive("--frames", args.frames)
+    _check_positive("--chunk", args.chunk)
+    _check_positive("--level", args.level, 2)
+    config = load_config(args.config)
+    num_frames = config.sim.num_frames if args.frames is None else args.frames
+    memory.check_memory(
+        memory.estimate_memory(
+            memory.JobSizes.from_config(config, num_frames=num_frames), "simulate",
+            chunk=args.chunk,
+        ),
+        f"simulating {num_frames} frames of a {config.net.rows}x{config.net.cols} net",
+        hint="lower num_frames (--frames) or the net size",
+    )  # fmt: skip
+    scene = build_physics(config)
+    bodies, two_way = build_bodies(config)
+    net, sim, material = scene.net, scene.sim, scene.material
+    out = OutputDir(args.out, overwrite=args.overwrite)
+    print(
+        f"diffcloth simulate {args.config}: net {net.rows}x{net.cols}, {num_frames} frames, "
+        f"{sim.num_substeps} substeps/frame, {sim.integrator}, {len(bodies)} rigid bodies",
+        flush=True,
+    )
+    try:
+        physics.check_stability(net, sim, material, error=not args.allow_unstable)
+    except ValueError as err:
+        out.discard()
+        _err(str(err))
+        return 1
+    chunk = max(1, min(args.chunk, num_frames))
+    jitted = {}
+
+    planes, spheres = split_colliders(scene.colliders)
+
+    def run(state, bods, n):
+        if n not in jitted:
+            if bodies:
+                jitted[n] = jax.jit(
+                    lambda s, b: physics.coupled_rollout(
+                        net, sim, material, s, b, num_frames=n, planes=planes, colliders=spheres,
+                        two_way=two_way,
+                    )
+                )  # fmt: skip
+            else:
+                jitted[n] = jax.jit(
+                    lambda s, b: (
+                        physics.rollout(
+                            net, sim, material, s, num_frames=n, colliders=scene.colliders
+                        ),
+                        (),
+                    )
+                )
+        return jitted[n](state, bods)
+
+    last = lambda tree: jax.tree_util.tree_map(lambda a: a[-1], tree)
+    state, bods, parts, body_parts = scene.state, bodies, [], []
+    done, t0 = 0, time.perf_counter()
+    while done < num_frames:
+        n = min(chunk, num_frames - done)
+        traj, body_traj = run(state, bods, n)
+        ok = np.asarray(physics.frames_ok(net, traj, sim, scene.state, first_frame=done))
+        for b in body_traj:
+            ok = ok & np.isfinite(np.asarray(b.position)).reshape(n, -1).all(axis=1)
+        if not ok.all():
+            out.discard()
+            _err(
+                f"unstable: the cloth blew up (non-finite or exploded state) at frame "
+                f"{done + int(np.argmin(ok))}; {ADVICE}"
+            )
+            return 1
+        state, bods = last(traj), last(body_traj)
+        parts.append(traj)
+        body_parts.append(body_traj)
+        done += n
+        elapsed = time.perf_counter() - t0
+        print(f"  frame {done:4d}/{num_frames}  {elapsed:6.1f} s", flush=True)
+    x = np.concatenate([np.asarray(p.x) for p in parts])
+    v = np.concatenate([np.asarray(p.v) for p in parts])
+    extra = {}
+    if bodies:  # (T, num_bodies, ...) body states
+        for field in ("position", "orientation", "velocity", "angular_velocity"):
+            extra[f"body_{field}"] = np.concatenate(
+                [np.stack([np.asarray(getattr(b, field)) for b in bt], axis=1) for bt in body_parts]
+            )
+    np.savez(
+        out.tmp / "trajectory.npz",
+        x=x,
+        v=v,
+        rest=np.asarray(net.rest),
+        pinned=np.asarray(net.pinned),
+        dt=float(np.asarray(sim.dt)),
+        **extra,
+    )
+    if args.obj:
+        from diffcloth import surface
+        from diffcloth.io import write_obj_sequence
+
+        flip = net.rows >= 2 and config.net.plane == "xz"  # normals up for a horizontal net
+        surfaces = jax.jit(jax.vmap(lambda xf: surface.tessellate(xf, args.level, flip=flip)))(x)
+        paths = write_obj_sequence(out.tmp / "obj", surfaces)
+    dest = out.commit()
+    print(f"wrote {dest / 'trajectory.npz'}: x {x.shape} ({time.perf_counter() - t0:.1f} s)")
+    if args.obj:
+        print(f"wrote {len(paths)} OBJ files (level {args.level}) to {dest / 'obj'}")
+    return 0
+
+
+def _force_host_devices(n: int) -> None:
+    """Let JAX's CPU backend expose `n` devices (no effect on GPUs), unless XLA_FLAGS already sets it.
+
+    Must run before JAX initialises a backend; the CLI calls it before any computation.
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
+
+
+def _render(args) -> int:
+    import jax
+
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    from diffcloth import memory, pipeline
+    from diffcloth.config import load_config
+    from diffcloth.experiment import video_strip
+    from diffcloth.io import save_png, save_video
+    from diffcloth.outdir import OutputDir
+    from diffcloth.physics.rollout import ADVICE
+    from diffcloth.scene import build_scene
+
+    _check_positive("--size", args.size)
+    _check_positive("--chunk", args.chunk)
+    if not (args.fps > 0 and args.fps < 1000):
+        from diffcloth.outdir import UsageError
+
+        raise UsageError(f"--fps must be in (0, 1000), got {args.fps}")
+    config = load_config(args.config)
+    sizes = memory.JobSizes.from_config(config, size=args.size)
+    memory.check_memory(
+        memory.estimate_memory(sizes, "render", chunk=args.chunk),
+        f"rendering {sizes.num_frames // sizes.frame_stride} frames from {sizes.cameras} "
+        f"camera(s) at {sizes.width}x{sizes.height} (net {sizes.rows}x{sizes.cols})",
+        hint="lower the image size (--size, [render] width/height), --chunk, num_frames or the "
+        "net size",
+    )
+    overrides = {}
+    if args.size is not None:
+        overrides.update(width=args.size, height=args.size)
+    scene = build_scene(config, overrides=overrides or None)
+    T, k = scene.num_frames, scene.frame_stride
+    h, w = scene.image_shape
+    out = OutputDir(args.out, overwrite=args.overwrite)
+    print(
+        f"diffcloth render {args.config}: {T} frames (every {k}), {len(scene.cameras)} camera(s) "
+        f"{w}x{h}, shading {scene.shading}, level {scene.level} (lod {config.render.lod}), "
+        f"culling {'on' if scene.cull else 'off'}, {len(scene.deform)} deformations, "
+        f"{len(scene.bodies)} rigid bodies",
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    traj, bodies = jax.jit(pipeline.simulate_all)(scene)
+    bad = pipeline.first_bad_frame(scene, traj, bodies)
+    if bad is not None:
+        out.discard()
+        _err(f"unstable: the simulation blew up (non-finite or exploded state) at frame {bad}; "
+             f"{ADVICE}")  # fmt: skip
+        return 1
+    print(f"  simulated in {time.perf_counter() - t0:.1f} s", flush=True)
+    xs, spheres = pipeline.rendered_states(scene, traj, bodies)
+    render_chunk = jax.jit(pipeline.render_frames)
+    chunk = max(1, args.chunk)
+    parts = []
+    for a in range(0, xs.shape[0], chunk):
+        sl = slice(a, min(a + chunk, xs.shape[0]))
+        sp = None if spheres is None else type(spheres)(spheres.center[sl], spheres.radius)
+        if xs[sl].shape[0] != chunk:  # pad the last chunk: one compiled shape
+            pad = chunk - xs[sl].shape[0]
+            x_part = np.concatenate([xs[sl], np.repeat(xs[sl][-1:], pad, 0)])
+            if sp is not None:
+                c = np.concatenate([sp.center, np.repeat(sp.center[-1:], pad, 0)])
+                sp = type(spheres)(c, sp.radius)
+            parts.append(np.asarray(render_chunk(scene, x_part, sp))[:, : chunk - pad])
+        else:
+            parts.append(np.asarray(render_chunk(scene, xs[sl], sp)))
+        done = min(a + chunk, xs.shape[0])
+        print(f"  rendered {done:4d}/{xs.shape[0]}  {time.perf_counter() - t0:6.1f} s", flush=True)
+    video = np.concatenate(parts, axis=1)  # (cams, T, H, W, 3) linear RGB
+    if not np.all(np.isfinite(video)):
+        out.discard()
+        _err("the rendered video is not finite (a degenerate control net?); nothing written")
+        return 1
+    strip = video_strip(video)  # linear; the files for people are sRGB-encoded
+    path = save_video(out.tmp / f"video.{args.format}", strip, fps=args.fps, colorspace="srgb")
+    save_png(out.tmp / "first.png", strip[0], colorspace="srgb")
+    save_png(out.tmp / "last.png", strip[-1], colorspace="srgb")
+    if args.npy:
+        np.save(out.tmp / "video.npy", video.astype(np.float32))  # linear, for programs
+    dest = out.commit()
+    print(
+        f"wrote {dest / path.name}, first.png, last.png (sRGB-encoded"
+        f"{'; video.npy linear' if args.npy else ''}) ({time.perf_counter() - t0:.1f} s)"
+    )
+    return 0

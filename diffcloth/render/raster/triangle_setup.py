@@ -1,0 +1,132 @@
+"""Setup (raster step 1): per-triangle homogeneous edge functions, culling, screen boxes and
+the window counts the visibility pass allocates from."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from diffcloth.render.camera import Camera, project
+
+
+def _vertex_table(positions, camera: Camera):
+    """(n, 5) per vertex: screen-homogeneous X = x_pix w, Y = y_pix w, w (pixel units; pixel
+    centre (j, i) at (j, i), row 0 at the top), view depth, clip x."""
+    clip, depth = project(positions, camera)
+    w, h = camera.width, camera.height
+    cw = clip[:, 3]
+    sx = 0.5 * (clip[:, 0] + cw) * w - 0.5 * cw
+    sy = 0.5 * (cw - clip[:, 1]) * h - 0.5 * cw
+    return jnp.stack([sx, sy, cw, depth, clip[:, 0], clip[:, 1]], axis=-1)
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+class _Setup(NamedTuple):
+    edge: jax.Array  # (m, 9) signed edge functions E[k, j] at 3k + j (differentiable)
+    vdepth: jax.Array  # (m, 3) view depth per vertex (differentiable)
+    valid: jax.Array  # (m,) bool: drawable
+    front: jax.Array  # (m,) bool: counter-clockwise on screen
+    bbox: jax.Array  # (m, 4) int32 x0, y0, x1, y1 inclusive pixel range (clamped)
+    origin: jax.Array  # (m, 2) integer pixel origin of the edge functions (no gradient)
+
+
+def _setup(positions, faces, camera: Camera, cull_backfaces: bool, mask=None) -> _Setup:
+    """Per-triangle edge functions, validity (culling), orientation and screen bounding box.
+
+    Edge functions are taken relative to an integer pixel origin near vertex 0, so that a tiny
+    triangle's homogeneous columns are well conditioned and the zero-area test is relative to the
+    triangle's own size: |det| <= 64 eps |c0| |c1| |c2| counts as degenerate and is skipped.
+    """
+    W, H = camera.width, camera.height
+    faces = faces.astype(jnp.int32)
+    tv = _vertex_table(positions, camera)[faces]  # (m, 3, 6)
+    tsg = jax.lax.stop_gradient(tv)
+    X, Y, Wc = (tv[:, :, j] for j in range(3))
+    Xs, Ys, Ws, ds, xc, yc = (tsg[:, :, j] for j in range(6))
+    ok0 = (Ws[:, 0] > 0) & jnp.isfinite(Xs[:, 0]) & jnp.isfinite(Ys[:, 0])
+    lim = float(2 * max(W, H))
+    w0 = jnp.where(ok0, Ws[:, 0], 1.0)
+    ox = jnp.floor(jnp.clip(jnp.where(ok0, Xs[:, 0] / w0, 0.0), -lim, lim))
+    oy = jnp.floor(jnp.clip(jnp.where(ok0, Ys[:, 0] / w0, 0.0), -lim, lim))
+    lx = X - ox[:, None] * Wc
+    ly = Y - oy[:, None] * Wc
+    c = [(lx[:, k], ly[:, k], Wc[:, k]) for k in range(3)]
+    adj = [_cross(c[1], c[2]), _cross(c[2], c[0]), _cross(c[0], c[1])]
+    det = c[0][0] * adj[0][0] + c[0][1] * adj[0][1] + c[0][2] * adj[0][2]
+    det_s = jax.lax.stop_gradient(det)
+    norms = [jnp.sqrt(jax.lax.stop_gradient(a * a + b * b + w * w)) for a, b, w in c]
+    tol = 64 * jnp.finfo(tv.dtype).eps
+    valid = (jnp.abs(det_s) > tol * norms[0] * norms[1] * norms[2]) & jnp.isfinite(det_s)
+    sgn = jnp.where(det_s < 0, -1.0, 1.0).astype(tv.dtype)
+    edge = jnp.stack([sgn * adj[k][j] for k in range(3) for j in range(3)], axis=-1)
+    wsign = jnp.sign(Ws[:, 0]) * jnp.sign(Ws[:, 1]) * jnp.sign(Ws[:, 2])
+    front = det_s * wsign < 0
+    near, far = jax.lax.stop_gradient(camera.near), jax.lax.stop_gradient(camera.far)
+    valid = valid & ~jnp.all(ds < near, axis=-1) & ~jnp.all(ds > far, axis=-1)
+    for coord in (xc, yc):  # all three vertices outside one side plane of the frustum
+        valid = valid & ~jnp.all(coord > Ws, axis=-1) & ~jnp.all(coord < -Ws, axis=-1)
+    if cull_backfaces:
+        valid = valid & front
+    if mask is not None:
+        valid = valid & mask
+    # screen bounding box of pixel centres of the part in front of the near plane: the vertices
+    # with depth >= near plus the points where edges cross the near plane (w > 0 at all of them).
+    nxt = jnp.array([1, 2, 0])
+    dn = ds - near
+    dj = dn[:, nxt]
+    crosses = (dn * dj) < 0
+    frac = jnp.where(crosses, dn / jnp.where(crosses, dn - dj, 1.0), 0.0)
+    big = float(4 * max(W, H) + 16)
+    use = jnp.concatenate([dn >= 0, crosses], axis=1)
+    ptw = jnp.concatenate([Ws, Ws + frac * (Ws[:, nxt] - Ws)], axis=1)
+    use = use & (ptw > 0)
+    safe_w = jnp.where(use, ptw, 1.0)
+    box = []
+    for q in (Xs, Ys):
+        pt = jnp.concatenate([q, q + frac * (q[:, nxt] - q)], axis=1)
+        sq = jnp.clip(pt / safe_w, -big, big)
+        box.append(jnp.ceil(jnp.min(jnp.where(use, sq, big), axis=-1)))
+        box.append(jnp.floor(jnp.max(jnp.where(use, sq, -big), axis=-1)))
+    x0, x1, y0, y1 = box
+    finite = jnp.all(jnp.isfinite(Xs) & jnp.isfinite(Ys) & jnp.isfinite(Ws), axis=-1)
+    valid = valid & jnp.any(use, axis=-1) & finite
+    x0, y0 = jnp.maximum(x0, 0), jnp.maximum(y0, 0)
+    x1, y1 = jnp.minimum(x1, W - 1), jnp.minimum(y1, H - 1)
+    bbox = jnp.stack([x0, y0, x1, y1], axis=-1).astype(jnp.int32)
+    return _Setup(edge, tv[:, :, 3], valid, front, bbox, jnp.stack([ox, oy], axis=-1))
+
+
+def _tile_counts(s: _Setup, tile: int):
+    x0, y0, x1, y1 = (s.bbox[:, k] for k in range(4))
+    nx = jnp.maximum(x1 - x0 + tile, 0) // tile
+    ny = jnp.maximum(y1 - y0 + tile, 0) // tile
+    ntiles = jnp.where(s.valid, nx * ny, 0)
+    return nx, ntiles
+
+
+DIRECT_PIXELS = 2  # triangles with at most this many pixel centres in their box get no windows
+
+
+def default_max_tiles(num_triangles: int, width: int, height: int, tile_size: int = 2) -> int:
+    """Default window budget: one per triangle plus two full screens of windows.
+
+    Shapes: none (Python ints).
+    """
+    return int(num_triangles + 2 * math.ceil(width / tile_size) * math.ceil(height / tile_size))
+
+
+def required_tiles(positions, faces, camera: Camera, *, tile_size: int = 2, cull_backfaces=False):
+    """Number of pixel windows a scene needs (compare with `max_tiles`): windows of the triangles
+    covering more than DIRECT_PIXELS pixel centres.
+
+    Shapes: positions (n, 3) m, faces (m, 3) int -> () int32.
+    """
+    s = _setup(positions, faces, camera, cull_backfaces)
+    direct = _tile_counts(s, 1)[1] <= DIRECT_PIXELS
+    return jnp.sum(jnp.where(direct, 0, _tile_counts(s, tile_size)[1]))

@@ -1,0 +1,123 @@
+"""Visibility (raster step 2, no gradient): direct per-triangle tests and prefix-sum allocated
+pixel windows, z-buffer scatter-min and id scatter-max."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from diffcloth._math import materialize
+from diffcloth.render.camera import Camera
+from diffcloth.render.raster.scan import _cummax, _cumsum
+from diffcloth.render.raster.triangle_setup import DIRECT_PIXELS, _Setup, _tile_counts
+
+
+def _candidate_depth(E, dep, org, px, py, keep, near, far):
+    """View depth of candidate pixels (px, py) (int32) of triangles with edge rows E (..., 9),
+    vertex depths dep (..., 3) and origins org (..., 2) (shapes broadcast); +inf where rejected."""
+    dtype = E.dtype
+    fx = (px - org[..., 0].astype(jnp.int32)).astype(dtype)
+    fy = (py - org[..., 1].astype(jnp.int32)).astype(dtype)
+    e = [E[..., 3 * k] * fx + E[..., 3 * k + 1] * fy + E[..., 3 * k + 2] for k in range(3)]
+    total = e[0] + e[1] + e[2]
+    num = e[0] * dep[..., 0] + e[1] * dep[..., 1] + e[2] * dep[..., 2]
+    depth = num / jnp.where(total > 0, total, 1.0)
+    keep = keep & (e[0] >= 0) & (e[1] >= 0) & (e[2] >= 0) & (total > 0)
+    keep = keep & (depth >= near) & (depth <= far)
+    return jnp.where(keep, depth, jnp.inf)
+
+
+def _windows(ftab, itab, ends, W: int, tile: int, budget: int, near, far):
+    """Candidates of the first `budget` tile x tile windows, allocated to triangles by the prefix
+    sum `ends` of their window counts: flat depth (+inf rejected), flat pixel index and triangle
+    id. ftab (m, 14): edge rows, vertex depths, origin; itab (m, 5): bounding box, windows per
+    row."""
+    m = ftab.shape[0]
+    ntiles = ends - jnp.concatenate([jnp.zeros(1, ends.dtype), ends[:-1]])
+    owner = jnp.full((budget,), -1, jnp.int32)
+    owner = owner.at[jnp.where(ntiles > 0, ends - ntiles, budget)].max(
+        jnp.arange(m, dtype=jnp.int32), mode="drop"
+    )
+    owner = _cummax(owner)
+    slot = jnp.arange(budget, dtype=jnp.int32)
+    tri = jnp.maximum(owner, 0)
+    # one gather per table, materialized: fused into the per-pixel code it would run per pixel
+    f = materialize(ftab[tri])[:, None, None]
+    i = materialize(itab[tri])
+    local = slot - (ends[tri] - ntiles[tri])
+    ntx = jnp.maximum(i[:, 4], 1)
+    ox = i[:, 0] + tile * (local % ntx)
+    oy = i[:, 1] + tile * (local // ntx)
+    u = jnp.arange(tile, dtype=jnp.int32)
+    px = ox[:, None, None] + u[None, None, :]  # (S, T, T), columns vary fastest
+    py = oy[:, None, None] + u[None, :, None]
+    keep = (px <= i[:, 2, None, None]) & (py <= i[:, 3, None, None])
+    keep = keep & ((owner >= 0) & (local < ntiles[tri]))[:, None, None]
+    depth = _candidate_depth(f[..., :9], f[..., 9:12], f[..., 12:], px, py, keep, near, far)
+    pix = jnp.broadcast_to(py * W + px, keep.shape).reshape(-1)
+    tid = jnp.broadcast_to(tri[:, None, None], keep.shape).reshape(-1)
+    return depth.reshape(-1), pix, tid
+
+
+def window_budgets(width: int, height: int, max_tiles: int, tile_size: int = 2) -> tuple:
+    """Static window budgets of the visibility pass, smallest first: an eighth and one screen of
+    windows, then `max_tiles`; a frame runs the smallest that holds its windows.
+    Below 128 x 128 pixels only `max_tiles` (as cheap there, and compiled once)."""
+    screen = math.ceil(width / tile_size) * math.ceil(height / tile_size)
+    if width * height < 128 * 128:
+        return (int(max_tiles),)
+    small = [b for b in (screen // 8, screen) if b < int(max_tiles)]
+    return tuple(sorted(set(small))) + (int(max_tiles),)
+
+
+def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int):
+    """(H * W,) int32 visible triangle per pixel (-1 background). No gradient.
+
+    Triangles whose clamped bounding box holds at most `DIRECT_PIXELS` pixel centres (nearly all
+    of a finely tessellated cloth) are tested at those pixels directly, per triangle; the others
+    get tile x tile windows from the smallest of `window_budgets` that holds the frame's windows
+    (lax.switch; under vmap every budget runs). A z-buffer scatter-min of the candidates'
+    depths, then a scatter-max of the ids of those equal to it (ties: larger id).
+    """
+    W, H = camera.width, camera.height
+    m = s.edge.shape[0]
+    E = jax.lax.stop_gradient(s.edge)
+    dep = jax.lax.stop_gradient(s.vdepth)
+    near, far = jax.lax.stop_gradient(camera.near), jax.lax.stop_gradient(camera.far)
+    nx1, n1 = _tile_counts(s, 1)
+    direct = n1 <= DIRECT_PIXELS
+    k = jnp.arange(DIRECT_PIXELS, dtype=jnp.int32)[None, :]
+    nxd = jnp.maximum(nx1, 1)[:, None]
+    dpx = s.bbox[:, 0, None] + k % nxd
+    dpy = s.bbox[:, 1, None] + k // nxd
+    col = lambda a: a[:, None]
+    d_keep = k < n1[:, None]
+    d_depth = _candidate_depth(col(E), col(dep), col(s.origin), dpx, dpy, d_keep, near, far)
+    d_pix = (dpy * W + dpx).reshape(-1)
+    d_tid = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32)[:, None], dpx.shape).reshape(-1)
+
+    nx, ntiles = _tile_counts(s, tile)
+    ends = _cumsum(jnp.where(direct, 0, ntiles))
+    ftab = materialize(jnp.concatenate([E, dep, s.origin.astype(E.dtype)], axis=-1))
+    itab = materialize(jnp.concatenate([s.bbox, nx[:, None]], axis=-1))
+
+    def pass_(budget):
+        w = _windows(ftab, itab, ends, W, tile, budget, near, far)
+        # the candidates' depths computed once (materialized), so that the edge functions are
+        # not re-evaluated inside every consumer fusion
+        depth = materialize(jnp.concatenate([d_depth.reshape(-1), w[0]]))
+        pix, tid = jnp.concatenate([d_pix, w[1]]), jnp.concatenate([d_tid, w[2]])
+        keep = depth < jnp.inf
+        pix = jnp.where(keep, pix, H * W)
+        zbuf = jnp.full((H * W,), jnp.inf, depth.dtype).at[pix].min(depth, mode="drop")
+        win = keep & (depth == zbuf.at[pix].get(mode="fill", fill_value=-1.0))
+        ids = jnp.full((H * W,), -1, jnp.int32)
+        return ids.at[jnp.where(win, pix, H * W)].max(tid, mode="drop")
+
+    budgets = window_budgets(W, H, max_tiles, tile)
+    if len(budgets) == 1:
+        return pass_(budgets[0])
+    level = jnp.sum(ends[-1] > jnp.asarray(budgets[:-1]))
+    return jax.lax.switch(level, [lambda b=b: pass_(b) for b in budgets])
