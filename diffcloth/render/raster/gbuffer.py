@@ -6,9 +6,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize
+from diffcloth._math import materialize, safe_normalize
 from diffcloth.render.camera import Camera
 from diffcloth.render.coverage import edge_coverage
+from diffcloth.render.mesh import vertex_normals
 from diffcloth.render.raster.buffers import Fragments, GBuffer
 from diffcloth.render.raster.resolve import interpolate, rasterize
 
@@ -168,12 +169,20 @@ def render_mesh(
     tile_size: int = 2,
     max_tiles: int | None = None,
     silhouette_budget: int | None = None,
+    light_dir=None,
+    normals="smooth",
 ):
-    """Unlit render: interpolated per-vertex colour, alpha = coverage, silhouette-antialiased.
+    """Interpolated per-vertex colour, alpha = coverage, silhouette-antialiased; unlit unless
+    `light_dir` is given.
 
     Args:
       positions: (n, 3) in m; colors: (n, C) (e.g. RGB); both differentiable.
       background: optional (C,) colour under uncovered pixels (default 0: premultiplied output).
+      light_dir: optional (3,) direction toward a directional light: the colour is then scaled
+        by the Lambert factor max(N . L, 0) with N the interpolated, renormalised vertex normal.
+      normals: with `light_dir`: "smooth" (default) for area-weighted averages of the face
+        normals (`mesh.vertex_normals`, Delannoy's smooth shading, differentiable in the
+        positions), or an (n, 3) array of vertex normals (e.g. read_obj's).
     Returns:
       (H, W, C + 1) image; last channel is coverage in [0, 1].
 
@@ -196,6 +205,14 @@ def render_mesh(
     )
     col = interpolate(colors, frags, faces)
     mask = (frags.triangle_id >= 0)[..., None]
+    if light_dir is not None:
+        if isinstance(normals, str):
+            if normals != "smooth":
+                raise ValueError(f'normals must be "smooth" or an (n, 3) array, got {normals!r}')
+            normals = vertex_normals(positions, faces)
+        n = safe_normalize(interpolate(jnp.asarray(normals, col.dtype), frags, faces))
+        light = jnp.reshape(safe_normalize(jnp.asarray(light_dir, col.dtype)), (1, 1, 3))
+        col = col * jnp.maximum(jnp.sum(n * light, axis=-1, keepdims=True), 0.0)
     if background is not None:
         col = jnp.where(mask, col, jnp.asarray(background, col.dtype))
     rgba = jnp.concatenate([col, mask.astype(col.dtype)], axis=-1)
