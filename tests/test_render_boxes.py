@@ -139,38 +139,3 @@ def test_box_mesh_follows_a_trajectory_axis():
     assert poses.position.shape == (2, 1, 3)
     verts, _, faces = box_mesh(jax.tree.map(lambda a: a[0], poses))
     assert verts.shape == (24, 3) and faces.shape == (12, 3)
-
-
-@pytest.mark.slow  # one more render compile (shadow maps); runs with -m slow
-def test_box_casts_shadows_on_the_cloth():
-    """A box 0.5 m above a horizontal cloth, light from 45 degrees: with shadows on, the cloth in
-    the box's umbra (0.5 m beside it) gets only ambient light (albedo * ambient); without shadows
-    it is lit, and the cloth far from the box is lit either way."""
-    from diffcloth.render.camera import project
-
-    u, v = jnp.meshgrid(jnp.linspace(-1.0, 1.0, 5), jnp.linspace(-1.0, 1.0, 5))
-    cloth = surface.tessellate(jnp.stack([u, jnp.zeros_like(u), v], axis=-1), 2, flip=True)
-    cam = render.make_camera((0.0, 2.5, 0.01), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), width=N, height=N)
-    box = _poses((0.0, 0.5, 0.0), half=(0.2, 0.05, 0.2))
-
-    def run(shadows):
-        li = render.make_lights(
-            ambient=(0.2, 0.2, 0.2), directional=[((1.0, 1.0, 0.0), (1.0, 1.0, 1.0), 1.0)],
-            shadows=shadows,
-        )  # fmt: skip
-        app = render.make_appearance(diffuse=(0.5, 0.5, 0.5), specular=(0.0, 0.0, 0.0))
-        return np.asarray(
-            render.render(cloth, cam, li, "gouraud", app, boxes=box, shadow_map_size=64)
-        )
-
-    lit, shadowed = run(False), run(True)
-
-    def pixel(p):
-        clip, _ = project(jnp.asarray([p]), cam)
-        x, y = np.asarray(clip[0, :2] / clip[0, 3])
-        return int(round(0.5 * (1 - y) * N - 0.5)), int(round(0.5 * (x + 1) * N - 0.5))
-
-    umbra, far = pixel((-0.5, 0.0, 0.0)), pixel((0.7, 0.0, 0.7))
-    np.testing.assert_allclose(lit[umbra][:3], 0.5 * (0.2 + np.sqrt(0.5)), atol=0.02)
-    np.testing.assert_allclose(shadowed[umbra][:3], 0.5 * 0.2, atol=0.02)  # ambient only
-    np.testing.assert_allclose(shadowed[far], lit[far], atol=1e-6)
