@@ -44,8 +44,9 @@ class Scene:
         image is the initial state (frames 0, k, 2k, ...). The number of images is the same.
       capture: optional `render.Capture`: per-camera exposure gain, small pose error and
         background colour (None: gain 1, no pose error, `background` for every camera).
-      push_out_offset: static, m >= 0; rendered vertices inside a sphere are pushed out to
-        radius + push_out_offset (cloth drawn that far outside the drawn sphere).
+      push_out_offset: static, m >= 0 (default 1 mm); rendered vertices inside a sphere are pushed
+        out to radius + push_out_offset (cloth drawn that far outside the drawn sphere: the
+        triangles' chords between pushed vertices would otherwise dip under the drawn sphere).
       draw_planes, plane_color: static; draw the plane colliders as matte ground of that linear
         albedo (shadow receivers).
       shadow_map_size: static shadow-map size of the lights with shadows (texels).
@@ -75,7 +76,7 @@ class Scene:
     two_way: bool = dataclasses.field(default=True, metadata={"static": True})
     first_frame: int = dataclasses.field(default=1, metadata={"static": True})
     capture: Any = None
-    push_out_offset: float = dataclasses.field(default=0.0, metadata={"static": True})
+    push_out_offset: float = dataclasses.field(default=1e-3, metadata={"static": True})
     draw_planes: bool = dataclasses.field(default=False, metadata={"static": True})
     plane_color: tuple = dataclasses.field(default=(0.6, 0.6, 0.6), metadata={"static": True})
     shadow_map_size: int = dataclasses.field(default=256, metadata={"static": True})

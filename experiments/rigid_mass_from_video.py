@@ -141,9 +141,17 @@ def polish(setup, result: FitResult, target, *, max_steps: int, t_start: float):
     """Levenberg-Marquardt on the same residuals from the Adam result (2 parameters: the
     Jacobian is two forward-mode passes). Returns (FitResult with the steps appended to its
     history, residual Jacobian at the final point (m, 2), number of LM steps taken)."""
+    from diffcloth.physics.stencil_vjp import autodiff_forces
+
     dtype = target.dtype
     res = jax.jit(lambda v, tgt: residuals(setup, _dict(v, dtype), tgt))
-    res_jac = jax.jit(lambda v, tgt: (res(v, tgt), jax.jacfwd(res)(v, tgt)))
+    _res_jac = jax.jit(lambda v, tgt: (res(v, tgt), jax.jacfwd(res)(v, tgt)))
+
+    def res_jac(v, tgt):
+        # forward mode: traced with the autodiff forces (the hand-written VJP is reverse only)
+        with autodiff_forces():
+            return _res_jac(v, tgt)
+
     cons = make_constraints(list(NAMES), CONSTRAINTS)
     # d raw / d physical: 1/m (log) and 1/(e (1 - e)) (logit): for the raw gradient norm.
     draw = lambda v: np.array([1.0 / v[0], 1.0 / (v[1] * (1.0 - v[1]))])  # noqa: E731

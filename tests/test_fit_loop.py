@@ -296,3 +296,25 @@ def test_grad_norms_are_raw_space(decay_fit):
     np.testing.assert_allclose(
         decay_fit.history.grad_norm["rate"][0], abs(float(g["rate"])), rtol=1e-8
     )
+
+
+def _quadratic(p):
+    return jnp.sum((p["a"] - 3.0) ** 2)
+
+
+def test_fit_params_and_multistart_take_fit_settings():
+    """settings=FitSettings(...) is the same as the keywords; a keyword overrides the settings'
+    field; an unknown keyword is a TypeError naming the fields."""
+    from diffcloth.fit import FitSettings
+
+    st = FitSettings(steps=12, learning_rate=0.1, progress=False, patience=None)
+    r1 = fit_params(_quadratic, {"a": 1.0}, settings=st)
+    r2 = fit_params(_quadratic, {"a": 1.0}, steps=12, learning_rate=0.1, progress=False,
+                    patience=None)  # fmt: skip
+    assert r1.iterations == r2.iterations == 12
+    np.testing.assert_array_equal(r1.history.loss, r2.history.loss)
+    assert fit_params(_quadratic, {"a": 1.0}, settings=st, steps=4).iterations == 4
+    multi = fit_multistart(_quadratic, [{"a": 1.0}, {"a": 2.5}], settings=st)
+    assert multi.best_index == 1 and len(multi.results) == 2
+    with pytest.raises(TypeError, match="unknown fit option"):
+        fit_params(_quadratic, {"a": 1.0}, stepz=3)

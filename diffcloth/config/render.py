@@ -41,7 +41,7 @@ class RenderConfig:
     lod: str = "fixed"
     cull: bool = False
     first_frame: int = 1
-    push_out_offset: float = 0.0
+    push_out_offset: float = 1e-3
     draw_planes: bool = False
     plane_color: tuple = (0.6, 0.6, 0.6)
     shadow_map_size: int = 256

@@ -24,10 +24,10 @@ lm_patience steps), "max_steps", "nonfinite", "stopped" (callback), "interrupted
 
 from __future__ import annotations
 
-import functools
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
+from types import SimpleNamespace
 from typing import Any
 
 import jax
@@ -35,8 +35,16 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from diffcloth.fit.checkpoint import _as_checkpoint, save_checkpoint
 from diffcloth.fit.constraints import make_constraints, to_physical, to_raw
-from diffcloth.fit.loop import (
+from diffcloth.fit.lm_polish import polish
+from diffcloth.fit.lm_solver import (  # noqa: F401 (public names re-exported here)
+    _compiled,
+    _probe,
+    lm_jacobian,
+    num_scalars,
+)
+from diffcloth.fit.results import (
     FitResult,
     History,
     MultiStartResult,
@@ -44,8 +52,10 @@ from diffcloth.fit.loop import (
     _check_init,
     _fmt,
     _stack_inits,
+    best_of,
 )
 from diffcloth.fit.settings import FitSettings, resolve_settings
+from diffcloth.fit.tracker import _progress_bar
 
 __all__ = ["fit_lm", "fit_lm_multistart", "lm_jacobian", "num_scalars"]
 
@@ -53,135 +63,6 @@ log = logging.getLogger("diffcloth.fit")
 
 #: consecutive rejected steps allowed = _REJECT_FACTOR * lm_patience (each shrinks the radius 4x)
 _REJECT_FACTOR = 3
-
-
-def num_scalars(params: Mapping[str, Any]) -> int:
-    """Total number of scalars in a dict of parameters."""
-    return int(sum(np.size(v) for v in params.values()))
-
-
-@functools.lru_cache(maxsize=32)
-def _compiled(residual_fn, cons_items, batched: bool):
-    """(init, step) jitted for one residual function and constraints; cached.
-
-    The function handed to the solver computes the residuals r and their Jacobian J (jacfwd:
-    one batched forward pass with n tangents) at the current point and returns
-    r + J (y - stop_gradient(y)): its value is r and its linearisation is exactly J, so the
-    solver's `jax.linearize` keeps only J (not the whole simulation) and its linear solves are
-    small matrix products. J is also returned as the solver's aux (initial damping, covariance).
-    """
-    import equinox as eqx
-    import optimistix as optx
-
-    cons = dict(cons_items)
-    # Tolerances of the solver's own (elementwise Cauchy) test; the host loop adds its own tests.
-    solver = optx.LevenbergMarquardt(rtol=1e-7, atol=1e-12)
-
-    def fn(y, args):
-        loss_args, stage_args, (anchor, sqrt_mu) = args
-        flat, unravel = ravel_pytree(y)
-        z = jax.lax.stop_gradient(flat)
-
-        def g(v):
-            return jnp.ravel(residual_fn(to_physical(unravel(v), cons), *loss_args, *stage_args))
-
-        # one forward pass carrying n tangents (the primal is computed once, unbatched)
-        r, jac = jax.vmap(lambda t: jax.jvp(g, (z,), (t,)), out_axes=(None, 1))(
-            jnp.eye(z.size, dtype=z.dtype)
-        )
-        # prior rows sqrt(mu) (y - anchor): hold parameters the stage cannot determine (mu = 0 in
-        # the final stage)
-        prior = sqrt_mu.astype(flat.dtype) * (flat - anchor.astype(flat.dtype))
-        return jnp.concatenate([r + jac @ (flat - z), prior]), jac
-
-    def init(y, args, step_size):
-        f_struct, aux_struct = jax.eval_shape(lambda: fn(y, args))
-        state = solver.init(fn, y, args, {}, f_struct, aux_struct, frozenset())
-        size = jnp.asarray(step_size, state.search_state.step_size.dtype)
-        return eqx.tree_at(lambda s: s.search_state.step_size, state, size)
-
-    def step(y, state, args):
-        y_new, state_new, _ = solver.step(fn, y, args, {}, state, frozenset())
-        loss = jnp.sum(jnp.square(state_new.f_info.residual))
-        done, result = solver.terminate(fn, y_new, args, {}, state_new, frozenset())
-        jac = state_new.aux  # J at the accepted point y_new
-        return (
-            y_new,
-            state_new,
-            loss,
-            done & (result == optx.RESULTS.successful),
-            state_new.num_accepted_steps,
-            state_new.search_state.step_size,
-            jnp.max(jnp.sum(jnp.square(jac), axis=0)),
-            jnp.all(jnp.isfinite(jac)),
-        )
-
-    if not batched:
-        return _forward_mode(eqx.filter_jit(init)), _forward_mode(eqx.filter_jit(step))
-
-    def masked_step(y, state, args, active):
-        ax = eqx.if_array(0)
-        out = eqx.filter_vmap(step, in_axes=(ax, ax, (None, None, 0)))(y, state, args)
-        y_new, state_new = out[0], out[1]
-
-        def keep(new, old):
-            if not eqx.is_array(new):
-                return new
-            mask = active.reshape((-1,) + (1,) * (new.ndim - 1))
-            return jnp.where(mask, new, old)
-
-        y_new = jax.tree_util.tree_map(keep, y_new, y)
-        state_new = jax.tree_util.tree_map(keep, state_new, state)
-        return (y_new, state_new) + out[2:]
-
-    return (
-        _forward_mode(
-            eqx.filter_jit(eqx.filter_vmap(init, in_axes=(eqx.if_array(0), (None, None, 0), 0)))
-        ),
-        _forward_mode(eqx.filter_jit(masked_step)),
-    )
-
-
-def _forward_mode(fn):
-    """Call (and so trace) `fn` with the physics' plain autodiff forces: the hand-written VJP of
-    the symplectic step is reverse-mode only (`diffcloth.physics.forces.autodiff_forces`)."""
-    from diffcloth.physics.forces import autodiff_forces
-
-    @functools.wraps(fn)
-    def call(*args, **kwargs):
-        with autodiff_forces():
-            return fn(*args, **kwargs)
-
-    return call
-
-
-def _probe(init_fn, step_fn, raw, args, batched, n):
-    """One solver step at `raw` (always accepted): (state, loss (n,), max diag J^T J (n,),
-    finite (n,), J). Costs one evaluation; compiles nothing beyond the step."""
-    size = jnp.asarray(np.ones(n) if batched else np.float64(1.0))  # as the real init: strong
-    state = init_fn(raw, args, size)
-    if batched:
-        out = step_fn(raw, state, args, jnp.ones((n,), bool))
-    else:
-        out = step_fn(raw, state, args)
-    state = out[1]
-    return state, out[2], out[6], out[7], state.aux
-
-
-def lm_jacobian(residual_fn, params, constraints=None, *, loss_args=(), stage_args=()):
-    """(residuals (m,), raw-space Jacobian (m, n)) at physical `params`, with the engine's compiled
-    step (same residual_fn, constraints and argument shapes: no new compilation). Columns follow
-    `ravel_pytree` of the raw dict (sorted names)."""
-    names = list(params)
-    cons = make_constraints(names, constraints)
-    init_fn, step_fn = _compiled(residual_fn, tuple(sorted(cons.items())), False)
-    raw = {k: _as_float(v) for k, v in to_raw(_check_init(params, "params"), cons).items()}
-    flat = ravel_pytree(raw)[0]
-    prior = (jnp.zeros_like(flat), jnp.zeros((), flat.dtype))
-    state, _, _, _, jac = _probe(
-        init_fn, step_fn, raw, (tuple(loss_args), tuple(stage_args), prior), False, 1
-    )
-    return np.asarray(state.f_info.residual)[: jac.shape[0]], np.asarray(jac)
 
 
 class _Interrupted(Exception):
@@ -240,7 +121,6 @@ def _run_lm(
     active = np.ones(n, bool)
     evaluations = 0  # residual evaluations with a Jacobian (per start)
     stage_log: list[dict] = []
-    from diffcloth.fit.loop import _progress_bar
 
     def record(loss, y, stage, force=False):
         hist_loss.append(loss)
@@ -258,8 +138,6 @@ def _run_lm(
     def save(step, st):
         if s.checkpoint_path is None:
             return
-        from diffcloth.fit.loop import save_checkpoint
-
         i = int(np.argmin(np.where(np.isfinite(best_loss), best_loss, np.inf)))
         if best_raw[i] is None:
             return
@@ -452,28 +330,18 @@ def _run_lm(
             )
             if not active.any():
                 break
-        polish = [i for i in range(n) if status[i] in ("converged", "stalled", "max_steps")]
-        if s.lm_polish and polish and best_raw[polish[0]] is not None:
-            k_global, evaluations = _polish(
-                s,
-                polish,
-                init_fn,
-                step_fn,
-                (loss_args, stages[-1], prior0),
-                batched,
-                n,
-                names,
-                best_raw,
-                best_loss,
-                status,
-                message,
-                host,
-                record,
-                len(stages) - 1,
-                k_global,
-                evaluations,
-                last_diag,
-            )
+        polish_starts = [
+            i for i, st in enumerate(status) if st in ("converged", "stalled", "max_steps")
+        ]
+        if s.lm_polish and polish_starts and best_raw[polish_starts[0]] is not None:
+            ctx = SimpleNamespace(
+                names=names, best_raw=best_raw, best_loss=best_loss, status=status,
+                message=message, host=host, record=record, stage=len(stages) - 1,
+            )  # fmt: skip
+            k_global, evaluations = polish(
+                s, polish_starts, (init_fn, step_fn, batched, n), (loss_args, stages[-1], prior0),
+                ctx, k_global, evaluations, last_diag,
+            )  # fmt: skip
     except KeyboardInterrupt:
         interrupted = True
         for i in np.flatnonzero(active):
@@ -526,98 +394,6 @@ def _run_lm(
     return results, wall
 
 
-def _polish(
-    s,
-    which,
-    init_fn,
-    step_fn,
-    args,
-    batched,
-    n,
-    names,
-    best_raw,
-    best_loss,
-    status,
-    message,
-    host,
-    record,
-    stage,
-    k_global,
-    evaluations,
-    diag,
-):
-    """Gauss-Newton polish after the last stage: undamped GN steps (the solver's first step with
-    a huge trust radius, lambda = 1e-9 max diag J^T J; no new compilation), each clipped to
-    lm_polish_step in raw units, until the step is below lm_xtol * 10. A contact- or visibility-
-    rugged loss makes the trust region reject every step long before the smooth model's minimum
-    (J^T r = 0); the GN fixed point is that minimum. Used only when the steps settle and its loss
-    is at most twice the trust-region best; otherwise the best trust-region point stays."""
-    y = {
-        k: np.stack(
-            [best_raw[i][k] if best_raw[i] is not None else best_raw[which[0]][k] for i in range(n)]
-        )
-        for k in names
-    }
-    todo = np.zeros(n, bool)
-    todo[which] = True
-    done = np.zeros(n, bool)
-    size = 1e9 / diag
-    loss_at = np.full(n, np.nan)
-    y_at = None
-    iters = 0
-    for _ in range(s.lm_polish):
-        iters += 1
-        yj = {k: jnp.asarray(v if batched else v[0]) for k, v in y.items()}
-        state = init_fn(yj, args, jnp.asarray(size if batched else np.float64(size[0])))
-        if batched:
-            out = step_fn(yj, state, args, jnp.asarray(todo & ~done))
-        else:
-            out = step_fn(yj, state, args)
-        evaluations += 1
-        k_global += 1
-        loss_at = host(out[2]).astype(float)
-        y_at = {k: v.copy() for k, v in y.items()}
-        step = {k: host(v) - y[k] for k, v in out[1].y_eval.items()}
-        moves = np.array([max(float(np.max(np.abs(step[k][i]))) for k in names) for i in range(n)])
-        for k in names:
-            y[k] = y[k] + np.clip(step[k], -s.lm_polish_step, s.lm_polish_step)
-        newly = todo & ~done & (moves < 10 * s.lm_xtol)
-        done |= newly
-        if np.all(done[todo]):
-            break
-    for i in np.flatnonzero(todo):
-        if done[i] and np.isfinite(loss_at[i]) and loss_at[i] <= 2.0 * best_loss[i]:
-            record_loss = np.full(n, np.nan)
-            record_loss[i] = loss_at[i]
-            best_raw[i] = {k: y_at[k][i] for k in names}
-            best_loss[i] = loss_at[i]
-            status[i] = "converged"
-            message[i] = (message[i] + "; " if message[i] else "") + (
-                f"then a Gauss-Newton polish reached the smooth model's minimum (J^T r = 0) in "
-                f"{iters} steps (loss {loss_at[i]:.4g} there)"
-            )
-        elif done[i]:
-            message[i] = (message[i] + "; " if message[i] else "") + (
-                f"a Gauss-Newton polish settled at loss {loss_at[i]:.4g}, more than twice the "
-                f"trust-region best {best_loss[i]:.4g} (a rugged loss biases the smooth model): "
-                "kept the trust-region point"
-            )
-        else:
-            message[i] = (message[i] + "; " if message[i] else "") + (
-                f"a Gauss-Newton polish did not settle in {s.lm_polish} steps: kept the best "
-                "trust-region point"
-            )
-    if np.any(done & todo):
-        rec = np.where(done & todo, loss_at, np.nan)
-        record(
-            rec,
-            {k: jnp.asarray(v if batched else v[0]) for k, v in y_at.items()},
-            stage,
-            force=True,
-        )
-    return k_global, evaluations
-
-
 def _settings_and_hook(settings, kwargs):
     hook = kwargs.pop("hook", None)
     stop = kwargs.pop("stop", None)
@@ -629,14 +405,32 @@ def _resumed(init, resume):
     """Start from a checkpoint's best values (an LM fit restarts its stages from there)."""
     if resume is None:
         return init
-    from diffcloth.fit.loop import _as_checkpoint
-
     ck = _as_checkpoint(resume)
     best = ck.get("best") or {}
     missing = sorted(set(init) - set(best))
     if missing:
         raise ValueError(f"resume: the checkpoint has no values for {missing}")
     return {k: best[k] for k in init}
+
+
+def _entry(residual_fn, inits, constraints, batched, loss_args, stages, stage_names, priors,
+           settings, kwargs):  # fmt: skip
+    """Shared body of `fit_lm` (one init dict) and `fit_lm_multistart`: (results, wall)."""
+    s, hook, stop, resume = _settings_and_hook(settings, dict(kwargs))
+    if not batched:
+        init_phys, n = _check_init(_resumed(inits, resume)), 1
+    else:
+        if resume is not None:
+            if not isinstance(inits, Sequence) or not inits:
+                raise ValueError("resume needs inits as a list of dicts")
+            inits = [_resumed(inits[0], resume)] + list(inits[1:])
+        init_phys, n = _stack_inits(inits)
+    return _run_lm(
+        residual_fn, init_phys, constraints, batched=batched, n=n, settings=s,
+        loss_args=tuple(loss_args), stages=stages, stage_names=stage_names, hook=hook,
+        devices=s.devices if batched and s.devices and s.devices > 1 else None, stop=stop,
+        priors=priors,
+    )  # fmt: skip
 
 
 def fit_lm(
@@ -674,22 +468,10 @@ def fit_lm(
       FitResult with method "lm", `evaluations` (residual + Jacobian evaluations) and `stages`.
       history.grad_norm is NaN (LM does not form the gradient).
     """
-    s, hook, stop, resume = _settings_and_hook(settings, dict(kwargs))
-    init_phys = _check_init(_resumed(init, resume))
-    results, _ = _run_lm(
-        residual_fn,
-        init_phys,
-        constraints,
-        batched=False,
-        n=1,
-        settings=s,
-        loss_args=tuple(loss_args),
-        stages=stages,
-        stage_names=stage_names,
-        hook=hook,
-        stop=stop,
-        priors=stage_priors,
-    )
+    results, _ = _entry(
+        residual_fn, init, constraints, False, loss_args, stages, stage_names, stage_priors,
+        settings, kwargs,
+    )  # fmt: skip
     return results[0]
 
 
@@ -708,26 +490,9 @@ def fit_lm_multistart(
     """`fit_lm` for several starts at once (vmap; each start has its own trust region and stops
     on its own); `devices` (settings) shards the starts as `fit_multistart` does. The best final
     loss wins."""
-    s, hook, stop, resume = _settings_and_hook(settings, dict(kwargs))
-    if resume is not None:
-        if not isinstance(inits, Sequence) or not inits:
-            raise ValueError("resume needs inits as a list of dicts")
-        inits = [_resumed(inits[0], resume)] + list(inits[1:])
-    stacked, n = _stack_inits(inits)
-    results, wall = _run_lm(
-        residual_fn,
-        stacked,
-        constraints,
-        batched=True,
-        n=n,
-        settings=s,
-        loss_args=tuple(loss_args),
-        stages=stages,
-        stage_names=stage_names,
-        hook=hook,
-        devices=s.devices if s.devices and s.devices > 1 else None,
-        stop=stop,
-        priors=stage_priors,
-    )
-    losses = np.array([r.loss if np.isfinite(r.loss) else np.inf for r in results])
-    return MultiStartResult(results=results, best_index=int(np.argmin(losses)), wall_s=wall)
+    return best_of(
+        *_entry(
+            residual_fn, inits, constraints, True, loss_args, stages, stage_names, stage_priors,
+            settings, kwargs,
+        )
+    )  # fmt: skip

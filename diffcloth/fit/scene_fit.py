@@ -293,22 +293,7 @@ def fit(
             result = fit_lm_multistart(res_fn, inits, cons, **common)
     else:
         loss_fn = _loss_fn(loss, tie_set)
-        kw = dict(
-            steps=s.steps,
-            optimizer=s.optimizer,
-            learning_rate=s.learning_rate,
-            clip_norm=s.clip_norm,
-            tol=s.tol,
-            patience=s.patience,
-            loss_tol=s.loss_tol,
-            progress=s.progress,
-            callback=s.callback,
-            checkpoint_path=s.checkpoint_path,
-            checkpoint_every=s.checkpoint_every,
-            loss_args=(targets, scene),
-            resume=resume,
-            stop=stop,
-        )
+        kw = dict(settings=s, loss_args=(targets, scene), resume=resume, stop=stop)
         if multistart <= 1:
             result = fit_params(loss_fn, init, cons, **kw)
         else:

@@ -50,9 +50,10 @@ class FitSettings:
         stage has no prior. 0 disables.
       lm_polish: at most this many undamped Gauss-Newton steps after the last stage (each
         clipped to lm_polish_step in raw units); the fixed point replaces the trust-region result
-        when the steps settle and its loss is at most twice the trust-region best (on the main
-        job the fixed point lay 8 % off in bend at 3.7x the loss: pixel flips at the contact bias
-        it, so it is refused there; on flag_wind it takes every parameter to 2e-6). 0 disables.
+        when the steps settle and its loss is at most twice the trust-region best (a rugged
+        loss biases the fixed point: with the old "coulomb" contact rule the main job's lay 8 %
+        off in bend at 3.7x the loss and was refused; with the continuous "impact" rule it takes
+        the main job and drape_material to the truth). 0 disables.
       stages: coarse-to-fine stages (`diffcloth.fit.schedule.make_schedule` spec: None = the
         default, "none", a Schedule or a list of {min_level, frames} tables).
     Multistart:

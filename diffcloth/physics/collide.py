@@ -91,7 +91,18 @@ def as_colliders(obj, dtype=None) -> Colliders | None:
 
 
 def collide(
-    x, v, mass, free, colliders: Colliders, friction, margin, sphere_shift=0.0, x_prev=None, h=None
+    x,
+    v,
+    mass,
+    free,
+    colliders: Colliders,
+    friction,
+    margin,
+    sphere_shift=0.0,
+    x_prev=None,
+    h=None,
+    x_start=None,
+    v_start=None,
 ):
     """Project points out of every collider and apply friction to their velocities.
 
@@ -108,6 +119,17 @@ def collide(
       x_prev, h: optional positions before the substep and the substep length (s). When given, a
         projected point's velocity is first reset to its actual displacement over the substep,
         (x_projected - x_prev) / h (position-based style), so large substeps inject less energy.
+      x_start, v_start: the "impact" rule (needs h): positions before the substep and the velocity
+        before its force kick (v - v_start = h * acceleration). A contacting point is resolved at
+        its estimated time of impact, the fraction 1 - beta of the substep (beta from the signed
+        distances before and after, 1 for a point already in contact): the approaching normal
+        velocity is removed there, the outward part of the kick that falls after the impact,
+        max(beta * (v - v_start).n, 0), is kept (lift-off), and the tangential velocity shrinks
+        by friction x the removed normal speed; the point also moves by beta * h x these velocity
+        changes. So a point that reaches the collider at the end of one substep and one that
+        reaches it at the start of the next end in the same state: the trajectory is continuous
+        in the parameters (with "coulomb" it jumps by about h x friction x |v.n| when the moment
+        of contact crosses a substep boundary).
     Returns:
       (x, v, sphere_impulse (n, 3), plane_impulse (m, 3)): impulses in N s that the colliders gave
       to the cloth in this substep (apply the opposite to a rigid body for two-way coupling).
@@ -120,8 +142,12 @@ def collide(
         dist, nrm = _direction_planar(x - c)
         inside = (dist < r) & free & _finite_points(x)
         x = jnp.where(inside[None], c + r * nrm, x)
-        v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
-        v_new = _contact_velocity(v_in, vel, nrm, inside, friction)
+        if x_start is not None:
+            d0 = _direction_planar(x_start - (c - vel * h))[0] - r
+            x, v_new = _impact_contact(x, v, v_start, vel, nrm, inside, d0, dist - r, friction, h)
+        else:
+            v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
+            v_new = _contact_velocity(v_in, vel, nrm, inside, friction)
         sphere_imp.append(jnp.sum(mass[None] * (v_new - v), axis=(1, 2)))
         v = v_new
     plane_imp = []
@@ -130,8 +156,14 @@ def collide(
         s = _dot(x, nrm) - colliders.planes.offset[k] - margin
         inside = (s < 0) & free & _finite_points(x)
         x = jnp.where(inside[None], x - s[None] * nrm, x)
-        v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
-        v_new = _contact_velocity(v_in, jnp.zeros_like(nrm), nrm, inside, friction)
+        if x_start is not None:
+            d0 = _dot(x_start, nrm) - colliders.planes.offset[k] - margin
+            x, v_new = _impact_contact(
+                x, v, v_start, jnp.zeros_like(nrm), nrm, inside, d0, s, friction, h
+            )
+        else:
+            v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
+            v_new = _contact_velocity(v_in, jnp.zeros_like(nrm), nrm, inside, friction)
         plane_imp.append(jnp.sum(mass[None] * (v_new - v), axis=(1, 2)))
         v = v_new
     zeros = jnp.zeros((0, 3), x.dtype)
@@ -167,3 +199,36 @@ def _contact_velocity(v, vel, nrm, inside, friction):
     scale = jnp.maximum(1.0 - safe_div(friction * dvn, ut_len), 0.0)
     u_new = jnp.where(approach[None], ut * scale[None], u)
     return vel + u_new
+
+
+def _impact_contact(x, v, v_start, vel, nrm, inside, d0, d1, friction, h):
+    """The "impact" rule on projected points x: returns (x, v), planar (3, rows, cols).
+
+    d0, d1: signed distances to the collider before and after the substep (d1 < 0 inside);
+    beta = d1 / (d1 - d0) is the fraction of the substep after the impact (1 when d0 <= 0).
+    v_start: velocity before the substep's kick (None: no kick). The kick k = v - v_start is
+    spread over the substep: the contact (normal speed removed, tangential speed shrunk by
+    friction x the removed speed) acts on the velocity at the impact, v - beta k; the kick after
+    it, beta k, is then added under the same contact (absorbed when it presses inwards, kept when
+    it lifts off). Continuous in d0, d1 and the velocities, and equal to "coulomb" for beta = 0."""
+    started_in = d0 <= 0
+    gap = d0 - d1
+    ok = ~started_in & (gap > 0)  # outside points too: keep the division finite for gradients
+    beta = jnp.where(started_in, 1.0, jnp.clip(-d1 / jnp.where(ok, gap, 1.0), 0.0, 1.0))
+    kick = jnp.zeros_like(v) if v_start is None else beta[None] * (v - v_start)
+    u = v - vel
+    approach = inside & (_dot(u, nrm) < 0)
+
+    def contact(w):  # one Coulomb contact on relative velocity w: returns (tangential, normal)
+        wn = _dot(w, nrm)
+        wt = w - wn[None] * nrm
+        wt_len, _ = _direction_planar(wt)
+        scale = jnp.maximum(1.0 - safe_div(friction * jnp.maximum(-wn, 0.0), wt_len), 0.0)
+        return wt * scale[None], jnp.maximum(wn, 0.0)
+
+    ut1, un1 = contact(u - kick)  # at the impact
+    ut2, un2 = contact(ut1 + un1[None] * nrm + kick)  # the rest of the kick
+    u_new = ut2 + un2[None] * nrm
+    ut = u - _dot(u, nrm)[None] * nrm
+    dx = (beta * h)[None] * (ut2 - ut + un2[None] * nrm)  # drift after the impact, changed
+    return jnp.where(approach[None], x + dx, x), jnp.where(approach[None], vel + u_new, v)

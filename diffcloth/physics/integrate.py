@@ -194,6 +194,11 @@ def _displacement_rule(sim) -> bool:
     return rule == "displacement" or (rule == "auto" and sim.integrator == "implicit")
 
 
+def _impact_rule(sim) -> bool:
+    rule = getattr(sim, "friction_rule", "auto")
+    return rule == "impact" or (rule == "auto" and sim.integrator != "implicit")
+
+
 def step_with_contacts(
     net: Net,
     sim: SimSettings,
@@ -235,7 +240,7 @@ def step_with_contacts(
     n_s = 0 if colliders is None else colliders.num_spheres
     n_p = 0 if colliders is None else colliders.num_planes
 
-    def constrain(x, x1, v1, t):
+    def constrain(x, x1, v1, t, v0=None):
         """Pins and colliders after the substep that ends at time t."""
         x1 = jnp.where(free3, x1, x0 + pin_v * t)
         v1 = jnp.where(free3, v1, pin_v)
@@ -253,6 +258,8 @@ def step_with_contacts(
                 t,
                 x_prev=x if _displacement_rule(sim) else None,
                 h=h,
+                x_start=x if _impact_rule(sim) else None,
+                v_start=v0 if _impact_rule(sim) else None,
             )
         return x1, v1, dsi, dpi
 
@@ -269,23 +276,25 @@ def step_with_contacts(
         # Kick-drift order with the drift first in the loop body: iteration s drifts substep s - 1
         # (x += h v, pins, colliders) and then kicks substep s. Each loop output then depends on the
         # force loop once (x and v computed in one body would make XLA evaluate the forces twice).
+        # vk: the velocity before the last kick (the "impact" rule credits the kick's lift-off)
         def substep(carry, s):
-            x, v, si, pi = carry
+            x, v, vk, si, pi = carry
             t = s.astype(dtype) * h
-            x1, v1, dsi, dpi = constrain(x, x + h * v, v, t)
+            x1, v1, dsi, dpi = constrain(x, x + h * v, v, t, vk)
             first = s == 0
             x1 = jnp.where(first, x, x1)
             v1 = jnp.where(first, v, v1)
             si = jnp.where(first, si, si + dsi)
             pi = jnp.where(first, pi, pi + dpi)
-            return (x1, kick(x1, v1), si, pi), None
+            return (x1, kick(x1, v1), v1, si, pi), None
 
-        init = (x0, to_planar(state.v), zeros_si, zeros_pi)
+        v_init = to_planar(state.v)
+        init = (x0, v_init, v_init, zeros_si, zeros_pi)
         # substeps are checkpointed too: a gradient stores one state per substep, not the force
         # loop's intermediates (which are recomputed in the backward pass)
         body = jax.checkpoint(substep, prevent_cse=False)
-        (x, v, si, pi), _ = jax.lax.scan(body, init, jnp.arange(num))
-        x, v, dsi, dpi = constrain(x, x + h * v, v, num * h)
+        (x, v, vk, si, pi), _ = jax.lax.scan(body, init, jnp.arange(num))
+        x, v, dsi, dpi = constrain(x, x + h * v, v, num * h, vk)
         si, pi = si + dsi, pi + dpi
     elif sim.integrator == "implicit":
 
@@ -293,7 +302,7 @@ def step_with_contacts(
             x, v, si, pi = carry
             t = (s + 1).astype(dtype) * h
             x1, v1 = _implicit_substep(net, sim, material, x, v, mass, free, h, pin_v)
-            x1, v1, dsi, dpi = constrain(x, x1, v1, t)
+            x1, v1, dsi, dpi = constrain(x, x1, v1, t, v)
             return (x1, v1, si + dsi, pi + dpi), None
 
         init = (x0, to_planar(state.v), zeros_si, zeros_pi)

@@ -11,7 +11,7 @@ import numpy as np
 
 INTEGRATORS = ("symplectic", "implicit")
 #: contact velocity rules: "auto" is "displacement" for the implicit integrator, else "coulomb"
-FRICTION_RULES = ("auto", "coulomb", "displacement")
+FRICTION_RULES = ("auto", "coulomb", "displacement", "impact")
 
 
 @jax.tree_util.register_dataclass
@@ -44,7 +44,9 @@ class SimSettings:
       friction_rule: static, contact velocity rule (FRICTION_RULES): "coulomb" removes the
         approaching normal velocity and shrinks the tangential one by friction * that speed;
         "displacement" first resets a projected point's velocity to its displacement over the
-        substep (position-based); "auto" picks "displacement" for implicit, "coulomb" otherwise.
+        substep (position-based); "impact" is "coulomb" with the friction also moving the point
+        from the estimated time of impact on (continuous in the parameters); "auto" picks
+        "displacement" for implicit, "impact" otherwise.
         `collision_margin` is the contact thickness.
     """
 
