@@ -225,7 +225,9 @@ def _render(args) -> int:
     out = OutputDir(args.out, overwrite=args.overwrite)
     print(
         f"diffcloth render {args.config}: {T} frames (every {k}), {len(scene.cameras)} camera(s) "
-        f"{w}x{h}, shading {scene.shading}, {len(scene.bodies)} rigid bodies",
+        f"{w}x{h}, shading {scene.shading}, level {scene.level} (lod {config.render.lod}), "
+        f"culling {'on' if scene.cull else 'off'}, {len(scene.deform)} deformations, "
+        f"{len(scene.bodies)} rigid bodies",
         flush=True,
     )
     t0 = time.perf_counter()

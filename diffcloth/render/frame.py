@@ -17,6 +17,7 @@ import numpy as np
 from diffcloth._math import materialize, safe_norm, safe_normalize
 from diffcloth.render.boxes import BoxPoses, box_mesh, box_neighbors_np
 from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
+from diffcloth.render.fringe import fringe_depth
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.rays import ray_sphere
@@ -470,17 +471,17 @@ def render(
         img, cloth_mask = img[..., :4], img[..., 4]
     else:
         cloth_mask = img[..., 3]
+    # depth tests of the ray-cast layers: the cloth's antialiased fringe takes its neighbour's depth
+    depth = fringe_depth(buf.surface_id >= 0, buf.depth)
     if spheres is not None and draw_spheres:
         sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)
-        front = (sphere_depth < buf.depth * (1.0 - 1e-4))[..., None]
+        front = (sphere_depth < depth * (1.0 - 1e-4))[..., None]
         over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
         under = img + (1.0 - img[..., 3:]) * sphere_rgba  # cloth over sphere
         img = jnp.where(front, over, under)
         cloth_mask = jnp.where(front[..., 0], (1.0 - sphere_rgba[..., 3]) * cloth_mask, cloth_mask)
-        depth = jnp.minimum(buf.depth, sphere_depth)
-    else:
-        depth = buf.depth
+        depth = jnp.minimum(depth, sphere_depth)
     if planes is not None:
         plane_rgba, plane_depth = _plane_layer(
             camera, planes, lights, appearance, plane_color, maps

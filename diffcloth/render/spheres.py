@@ -72,7 +72,8 @@ def raycast_spheres(spheres: Sphere, camera: Camera, attributes: dict | None = N
 
 
 def _sphere_crossings(g, which, mask, depth, sid):
-    """(H, W, 4) crossings on the nearer pixel of each pair showing different surfaces."""
+    """(H, W, 8) crossings on the nearer pixel of each pair showing different surfaces, and
+    (zero) edge slopes, as `raster.Fragments`."""
     gs = jnp.take_along_axis(g, which[None], axis=0)[0]  # own sphere at own pixel
     # gradient direction of the own sphere's g: a rim point is handled by the pair direction it
     # is most perpendicular to (as nvdiffrast does for edges)
@@ -110,4 +111,5 @@ def _sphere_crossings(g, which, mask, depth, sid):
         pad_lo[axis], pad_hi[axis] = (0, 1), (1, 0)
         out.append(jnp.pad(t_a, pad_lo, constant_values=-1.0))
         out.append(jnp.pad(t_b, pad_hi, constant_values=-1.0))
-    return jnp.stack(out, axis=-1)
+    # slopes 0 (rim taken perpendicular to the pair, as nvdiffrast): the rasterizer's (8,) layout
+    return jnp.concatenate([jnp.stack(out, axis=-1), jnp.zeros(g.shape[1:] + (4,), g.dtype)], -1)

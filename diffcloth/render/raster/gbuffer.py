@@ -6,8 +6,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize
+from diffcloth._math import materialize, safe_normalize
 from diffcloth.render.camera import Camera
+from diffcloth.render.coverage import edge_coverage
+from diffcloth.render.mesh import vertex_normals
 from diffcloth.render.raster.buffers import Fragments, GBuffer
 from diffcloth.render.raster.resolve import interpolate, rasterize
 
@@ -26,21 +28,30 @@ def antialias(color, buffer):
     ids = buffer.triangle_id if isinstance(buffer, Fragments) else buffer.surface_id
     depth = jax.lax.stop_gradient(buffer.depth)
     cross = buffer.crossings.astype(color.dtype)
+    if cross.shape[-1] == 4:  # no slopes: edges taken perpendicular to the pair (nvdiffrast)
+        cross = jnp.concatenate([cross, jnp.zeros_like(cross)], axis=-1)
 
-    def weights(ia, ib, da, db, ta, tb):
-        # pair (a, b): the front pixel moves toward the back colour by (1/2 - t) when the edge
-        # is nearer than the midline, else the back pixel toward the front colour by (t - 1/2)
+    def weights(ia, ib, da, db, ta, tb, ka, kb):
+        # pair (a, b): the front pixel moves toward the back colour by its uncovered area
+        # 1 - A(t), the back pixel toward the front colour by its covered area A(t - 1), A the
+        # exact coverage by the straight edge of slope k (edge_coverage; k = 0 gives nvdiffrast's
+        # 1/2 - t on the front pixel when t < 1/2, else t - 1/2 on the back one)
         a_front = da < db
         t = jnp.where(a_front, ta, tb)
+        k = jnp.where(a_front, ka, kb)
         ok = (ia != ib) & (jax.lax.stop_gradient(t) >= 0)
-        wf = jnp.where(ok & (t < 0.5), 0.5 - t, 0.0)
-        wb = jnp.where(ok & (t >= 0.5), t - 0.5, 0.0)
+        wf = jnp.where(ok, 1.0 - edge_coverage(t, k), 0.0)
+        wb = jnp.where(ok, edge_coverage(t - 1.0, k), 0.0)
         return jnp.where(a_front, wf, wb), jnp.where(a_front, wb, wf)
 
     h_a, h_b = weights(
-        ids[:, :-1], ids[:, 1:], depth[:, :-1], depth[:, 1:], cross[:, :-1, 0], cross[:, 1:, 1]
-    )
-    v_a, v_b = weights(ids[:-1], ids[1:], depth[:-1], depth[1:], cross[:-1, :, 2], cross[1:, :, 3])
+        ids[:, :-1], ids[:, 1:], depth[:, :-1], depth[:, 1:], cross[:, :-1, 0], cross[:, 1:, 1],
+        cross[:, :-1, 4], cross[:, 1:, 5],
+    )  # fmt: skip
+    v_a, v_b = weights(
+        ids[:-1], ids[1:], depth[:-1], depth[1:], cross[:-1, :, 2], cross[1:, :, 3],
+        cross[:-1, :, 6], cross[1:, :, 7],
+    )  # fmt: skip
     # weight of each pixel's move toward its right / left / lower / upper neighbour's colour
     w = materialize(
         jnp.stack(
@@ -158,12 +169,20 @@ def render_mesh(
     tile_size: int = 2,
     max_tiles: int | None = None,
     silhouette_budget: int | None = None,
+    light_dir=None,
+    normals="smooth",
 ):
-    """Unlit render: interpolated per-vertex colour, alpha = coverage, silhouette-antialiased.
+    """Interpolated per-vertex colour, alpha = coverage, silhouette-antialiased; unlit unless
+    `light_dir` is given.
 
     Args:
       positions: (n, 3) in m; colors: (n, C) (e.g. RGB); both differentiable.
       background: optional (C,) colour under uncovered pixels (default 0: premultiplied output).
+      light_dir: optional (3,) direction toward a directional light: the colour is then scaled
+        by the Lambert factor max(N . L, 0) with N the interpolated, renormalised vertex normal.
+      normals: with `light_dir`: "smooth" (default) for area-weighted averages of the face
+        normals (`mesh.vertex_normals`, Delannoy's smooth shading, differentiable in the
+        positions), or an (n, 3) array of vertex normals (e.g. read_obj's).
     Returns:
       (H, W, C + 1) image; last channel is coverage in [0, 1].
 
@@ -186,6 +205,14 @@ def render_mesh(
     )
     col = interpolate(colors, frags, faces)
     mask = (frags.triangle_id >= 0)[..., None]
+    if light_dir is not None:
+        if isinstance(normals, str):
+            if normals != "smooth":
+                raise ValueError(f'normals must be "smooth" or an (n, 3) array, got {normals!r}')
+            normals = vertex_normals(positions, faces)
+        n = safe_normalize(interpolate(jnp.asarray(normals, col.dtype), frags, faces))
+        light = jnp.reshape(safe_normalize(jnp.asarray(light_dir, col.dtype)), (1, 1, 3))
+        col = col * jnp.maximum(jnp.sum(n * light, axis=-1, keepdims=True), 0.0)
     if background is not None:
         col = jnp.where(mask, col, jnp.asarray(background, col.dtype))
     rgba = jnp.concatenate([col, mask.astype(col.dtype)], axis=-1)

@@ -53,7 +53,7 @@ def rasterize(
     triangle_mask=None,
     tile_size: int = 2,
     max_tiles: int | None = None,
-    silhouette_walk: int = 1,
+    silhouette_walk: int = 8,
     silhouette_budget: int | None = None,
 ) -> Fragments:
     """Visible triangle, perspective-correct barycentrics and depth for every pixel.
@@ -69,7 +69,9 @@ def rasterize(
       triangle_mask: optional (m,) bool, False drops a triangle (e.g. frustum-culled objects).
       tile_size, max_tiles: static raster window size and window budget (see module doc).
       silhouette_walk: how many triangles beyond the visible one the silhouette search may cross
-        along each neighbour segment (static; sub-pixel triangles need 1-2).
+        along each neighbour segment (static). Default 8: near a contour seen at a grazing
+        angle the triangles are foreshortened to slivers and a 1-pixel segment crosses many
+        (walk 1-2 missed most of the drape's contour crossings at 128 x 128, walk 8 finds them).
       silhouette_budget: static size of the compacted list of pixel pairs searched for
         silhouettes (default `default_silhouette_budget`: H W / 16 from 128 x 128 up); when a
         frame needs more, a full-image search runs instead (same result, slower; under vmap
@@ -110,7 +112,7 @@ def silhouette_pairs(
     cull_backfaces: bool = False,
     tile_size: int = 2,
     max_tiles: int | None = None,
-    silhouette_walk: int = 1,
+    silhouette_walk: int = 8,
 ):
     """Number of pixel pairs the silhouette search needs (compare with `silhouette_budget`:
     above it, the slower full-image search runs)."""

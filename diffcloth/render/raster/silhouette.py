@@ -38,7 +38,7 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
     py)) is the nearer one; vertical: the partner is below (else to the right). Returns the
     fraction t in [0, 1] from the front pixel's centre toward the back one's where the silhouette
     edge is crossed (differentiable), -1 where none is found or the edge belongs to the other
-    pair direction.
+    pair direction; and the edge's slope k in [0, 1] relative to the pair direction (0 where none).
     """
     m = s.edge.shape[0]
     dtype = s.edge.dtype
@@ -90,7 +90,12 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
     # as nvdiffrast: an edge is handled by the pair direction it is most perpendicular to
     ar0, ar1 = jnp.abs(jax.lax.stop_gradient(r[..., 0])), jnp.abs(jax.lax.stop_gradient(r[..., 1]))
     found = found & jnp.where(vertical, ar1 > ar0, ar0 >= ar1)
-    return jnp.where(found, jnp.clip(safe_div(ef, jnp.where(found, slope, 1.0)), 0.0, 1.0), -1.0)
+    t = jnp.where(found, jnp.clip(safe_div(ef, jnp.where(found, slope, 1.0)), 0.0, 1.0), -1.0)
+    # the edge's slope relative to the pair direction (0: perpendicular), for `edge_coverage`
+    along, across = jnp.abs(r[..., 0]), jnp.abs(r[..., 1])
+    along, across = jnp.where(vertical, across, along), jnp.where(vertical, along, across)
+    k = jnp.where(found, jnp.clip(safe_div(across, jnp.where(found, along, 1.0)), 0.0, 1.0), 0.0)
+    return t, k
 
 
 def default_silhouette_budget(width: int, height: int) -> int:
@@ -139,9 +144,9 @@ def _pairs(s: _Setup, tri, ok, depth, neighbors, walk: int):
 
 
 def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: int | None):
-    """(H, W, 4) fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
+    """(H, W, 8): fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
     silhouette lies, set only on the nearer pixel of each neighbouring pair showing different
-    triangles (-1 elsewhere).
+    triangles (-1 elsewhere), then the slopes of those edges (0 elsewhere).
 
     Walks from the front pixel's triangle across internal edges (up to `walk` further triangles)
     along the segment to the neighbour's centre and stops at the first silhouette edge. Only
@@ -178,15 +183,22 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
             py,
             walk,
         )
-        out = jnp.full((n,), -1.0, t.dtype).at[jnp.where(act, idx, n)].set(t, mode="drop")
-        return out.reshape(2, H, W)
+        t, k = t
+        at = jnp.where(act, idx, n)
+        out = jnp.full((n,), -1.0, t.dtype).at[at].set(t, mode="drop")
+        out_k = jnp.zeros((n,), k.dtype).at[at].set(k, mode="drop")
+        return out.reshape(2, H, W), out_k.reshape(2, H, W)
 
     if K >= n:
-        t = full(None)
+        t, k = full(None)
     else:
-        t = jax.lax.cond(jnp.sum(active) <= K, compact, full, None)
-    t_a = jnp.where(a_front, t, -1.0)  # stored on this pixel (+x / +y slot)
-    t_b = jnp.where(a_front, -1.0, t)  # stored on the partner (-x / -y slot)
-    minus_x = jnp.pad(t_b[0, :, :-1], ((0, 0), (1, 0)), constant_values=-1.0)
-    minus_y = jnp.pad(t_b[1, :-1], ((1, 0), (0, 0)), constant_values=-1.0)
-    return jnp.stack([t_a[0], minus_x, t_a[1], minus_y], axis=-1)
+        t, k = jax.lax.cond(jnp.sum(active) <= K, compact, full, None)
+
+    def slots(v, none):
+        v_a = jnp.where(a_front, v, none)  # stored on this pixel (+x / +y slot)
+        v_b = jnp.where(a_front, none, v)  # stored on the partner (-x / -y slot)
+        minus_x = jnp.pad(v_b[0, :, :-1], ((0, 0), (1, 0)), constant_values=none)
+        minus_y = jnp.pad(v_b[1, :-1], ((1, 0), (0, 0)), constant_values=none)
+        return [v_a[0], minus_x, v_a[1], minus_y]
+
+    return jnp.stack(slots(t, -1.0) + slots(k, 0.0), axis=-1)
