@@ -91,3 +91,59 @@ def test_held_values_are_arguments_not_constants():
     assert float(out1.params["a"]) == pytest.approx(3.0, rel=1e-5)
     assert float(out2.params["a"]) == pytest.approx(2.0, rel=1e-5)
     assert np.isfinite(out1.loss) and out1.evaluations > 0
+
+
+def test_schedule_stage_free_and_scan_in_the_config():
+    from diffcloth.config import ConfigError
+    from diffcloth.config.fit import parse_fit
+    from diffcloth.fit.schedule import make_schedule
+
+    stages = [
+        {"frames": 0.5, "free": ["drag_normal"]},
+        {"min_level": 1, "free": ["bend", "drag_normal"], "scan": {"bend": [0.5, 1.0, 2.0]}},
+    ]
+    fs = parse_fit(
+        {"fit": {"free": ["bend", "drag_normal"], "stages": stages}, "truth": {"bend": 2e-3}}
+    )
+    sched = make_schedule(fs.engine().stages)
+    assert sched.stages[0].free == ("drag_normal",) and sched.stages[0].staged
+    assert sched.stages[1].scan == ("bend", (0.5, 1.0, 2.0))
+    base = {"free": ["bend", "drag_normal"]}
+    for bad, match in (
+        ([{"free": ["density"]}], r"stages\[0\].*density"),
+        ([{"free": ["bend"], "scan": {"drag_normal": [0.5, 2.0]}}], "not in the stage"),
+        ([{"scan": {"bend": [1.0]}}], "positive factors"),
+        ([{"frames": 0.5, "fre": ["bend"]}], "keys"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            parse_fit({"fit": {**base, "stages": bad}, "truth": {"bend": 2e-3}})
+
+
+@pytest.mark.slow
+def test_scene_fit_with_a_staged_schedule():
+    # tiny drape (the scene of test_fit_lm): drag alone on the first frames, then a scan of
+    # bend from 4x off, then both; the result names every stage
+    import diffcloth as dc
+    from diffcloth import config as cfg
+    from diffcloth import scene
+    from tests.test_fit_lm import TINY, TRUTH
+
+    sc = scene.build_scene(cfg.parse_config(TINY), dtype=jnp.float64)
+    targets = dc.fit.make_targets(sc, TRUTH)
+    res = dc.fit.fit(
+        sc,
+        targets,
+        ["bend", "drag_normal"],
+        steps=30,
+        init={"bend": 5e-4, "drag_normal": 0.5},
+        progress=False,
+        stages=[
+            {"frames": 0.5, "free": ["drag_normal"]},
+            {"free": ["bend"], "scan": {"bend": [1.0, 2.0, 4.0, 8.0]}},
+        ],
+    )
+    assert res.method == "lm" and len(res.stages) == 3
+    assert "free: drag_normal" in res.stages[0]["name"]
+    assert "scan bend -> 0.002" in res.stages[1]["name"]  # 4x the start is the truth
+    for name, true in TRUTH.items():
+        assert float(res.params[name]) == pytest.approx(true, rel=1e-3), res.message

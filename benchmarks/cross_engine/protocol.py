@@ -7,14 +7,18 @@
 Per case (scene x stiffness regime), through diffcloth's public API only:
 1. A scene is built from a config dict (`dc.build_scene`: net, sim, sphere, floor plane, the two
    cameras, light, albedos, background = the environment's grey) with the Provot mass-spring model
-   (`diffcloth.physics.massspring`) and a generic guess for the stiffnesses, never the truth:
-   k_struct = 100, k_shear = 25, k_flex = 5 N/m; dashpots, air damping, density and friction at
-   the model's defaults (the truth uses other dashpots). Only the stiffnesses are fitted.
-2. Fit on the first `fit_frames` frames (two thirds) with `dc.fit.fit_lm` (Levenberg-Marquardt,
-   coarse to fine in time: frame windows of 1/3, 2/3 and all fitting frames) when the fitting
-   engine is there, else Adam (`dc.fit.fit_params`) on the same loss; the loss is
-   `dc.fit.footage`: soft-IoU silhouette term + Huber colour term over the target's cloth pixels
-   (dilated mask: diffcloth draws no floor, so colour elsewhere is not comparable).
+   (`diffcloth.physics.massspring`) and a generic guess, never the truth: k_struct = 100,
+   k_shear = 25, k_flex = 5 N/m, air damping 0.002 N s/m; dashpots, density and friction at the
+   model's defaults (the truth uses other dashpots). Simulated in float64 (`--float32` to
+   compare): in float32 the round-off alone moves the draped cloth enough to make the loss jump.
+2. Fit on the first `fit_frames` frames (two thirds) with `diffcloth.fit.staged.fit_staged`
+   (Levenberg-Marquardt stages, coarse to fine in the parameters and in time): air damping alone
+   on the free fall (the first 35 % of the fitting frames, simulated alone); then a scan of the
+   stiffness scale over 1/16 .. 16 x the guess (shear and flexion tied to k_struct at the guess's
+   ratios), then LM over (k_struct, air damping) on the first half and on all fitting frames;
+   `--untie` adds a last stage over all four. The loss is `dc.fit.footage`: a soft-IoU
+   silhouette term + a Huber colour term over the target's cloth pixels (dilated mask: diffcloth
+   draws no floor, so colour elsewhere is not comparable).
 3. Predict every frame with the fitted values and compare with the Warp nets (control points:
    both engines use the same grid) and the Mitsuba frames (cloth silhouette IoU of masks > 1/2,
    RMSE over pixels that are cloth in both), for the fitting and the predicted frames; the same
@@ -60,7 +64,13 @@ def has_massspring() -> bool:
 
 
 def build_scene(
-    scene_name: str, num_frames: int, guess: dict, size: int = S.SIZE, stride=1, level=4
+    scene_name: str,
+    num_frames: int,
+    guess: dict,
+    size: int = S.SIZE,
+    stride=1,
+    level=4,
+    dtype=jnp.float32,
 ):
     """The diffcloth scene of a case with the given stiffnesses (Provot model)."""
     import diffcloth as dc
@@ -121,10 +131,10 @@ def build_scene(
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the continuum stability check does not apply
-        sc = dc.build_scene(cfg.parse_config(conf), dtype=jnp.float32)
+        sc = dc.build_scene(cfg.parse_config(conf), dtype=dtype)
     from diffcloth.physics.massspring import make_mass_spring
 
-    ms = make_mass_spring(jnp.float32, lumping="uniform", **guess)
+    ms = make_mass_spring(dtype, lumping="uniform", **guess)
     sim = sc.sim
     if "friction_rule" in {f.name for f in dataclasses.fields(sim)}:
         sim = dataclasses.replace(sim, friction_rule="coulomb")
@@ -150,12 +160,13 @@ def _sim_video(sc, p):
 _SIM_VIDEO = jax.jit(_sim_video)  # one compiled program per scene structure
 
 
-def compare(scene, params, data, frames: slice):
+def compare(scene, params, data, frames: slice, run=None):
     """Trajectory, silhouette and colour figures of diffcloth with `params` against the targets
     on the simulated frames `frames` (0-based: frame k + 1 of the footage). Images are compared
-    on the rendered frames (every `scene.frame_stride`-th) inside `frames`."""
+    on the rendered frames (every `scene.frame_stride`-th) inside `frames`. `run`: the
+    (trajectory, video, masks) of these params when already computed."""
     k = scene.frame_stride
-    traj, video, masks = (np.asarray(a) for a in _SIM_VIDEO(scene, params))
+    traj, video, masks = run or (np.asarray(a) for a in _SIM_VIDEO(scene, params))
     ref = data["nets"][1:]  # Warp frames 1 .. F
     d = np.linalg.norm(traj[frames] - ref[frames], axis=-1)
     sim_idx = np.arange(k - 1, traj.shape[0], k)  # simulated frame index of each rendered frame
@@ -211,64 +222,80 @@ def residual_fn_factory(spec):
     return residuals
 
 
-def _optimistix_lm(res, init, loss_args, stages, steps, log_fn):
-    """Levenberg-Marquardt from optimistix on log-parameters, one solve per frame window (used
-    when diffcloth has no `fit.fit_lm` yet)."""
-    import optimistix as optx
-
-    from diffcloth.physics.forces import autodiff_forces
-
-    names = list(init)
-    raw = jnp.log(jnp.asarray([init[n] for n in names], jnp.float32))
-
-    def r(z, args):
-        return res({n: jnp.exp(z[i]) for i, n in enumerate(names)}, *args)
-
-    solver = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-5)
-    per_stage = max(2, steps // len(stages))
-    evals = 0
-    for i, (fw,) in enumerate(stages):
-        t = time.perf_counter()
-        with autodiff_forces():
-            sol = optx.least_squares(
-                r, solver, raw, args=(*loss_args, fw), max_steps=per_stage, throw=False
-            )
-        raw = sol.value
-        steps_done = int(sol.stats["num_steps"])
-        evals += steps_done
-        loss = float(jnp.sum(r(raw, (*loss_args, fw)) ** 2))
-        log_fn(dict(stage=i, window=int(np.sum(np.asarray(fw) > 0)), steps=steps_done,
-                    loss=loss, stage_s=round(time.perf_counter() - t, 1),
-                    params={n: float(jnp.exp(raw[j])) for j, n in enumerate(names)}))  # fmt: skip
-    return {n: float(jnp.exp(raw[j])) for j, n in enumerate(names)}, loss, evals
+#: the generic guess's stiffness ratios, kept by the tie (one free stiffness scale)
+TIES = {
+    "k_shear": f"{GUESS['k_shear'] / GUESS['k_struct']:g} * k_struct",
+    "k_flex": f"{GUESS['k_flex'] / GUESS['k_struct']:g} * k_struct",
+}
+SCAN = tuple(2.0 ** np.arange(-4, 5))  # k_struct x 1/16 .. 16 around the guess
 
 
-def run_fit(scene, data, n_fit, steps, log_fn):
-    from diffcloth import fit as dcfit
+def window(T: int, frac: float, dtype) -> jax.Array:
+    """(T,) frame weights: 1 on the first max(1, round(frac * T)) rendered frames."""
+    return jnp.asarray((np.arange(T) < max(1, round(frac * T))).astype(dtype))
+
+
+def run_fit(case, data, n_fit, args, log_fn):
+    """The staged fit (`diffcloth.fit.staged`) on the first n_fit frames:
+    1. air damping alone, on a scene that simulates only the first 35 % of the fitting frames
+       (the free fall, and the first contact);
+    2. a scan of the stiffness scale (k_struct x 1/16 .. 16, shear and flexion tied to it at the
+       guess's ratios) on the first half, then LM over (k_struct, air damping) on the first half
+       and on all fitting frames;
+    3. with `--untie`, LM over all four on all fitting frames.
+    Returns (fitted, wall_s, method, evaluations)."""
     from diffcloth.fit.constraints import Positive
+    from diffcloth.fit.settings import FitSettings
+    from diffcloth.fit.staged import ParamStage, fit_staged
 
-    spec, prep, wpix = footage_setup(scene, data, n_fit)
+    dtype = np.float64 if args.x64 else np.float32
+    kw = dict(size=args.size, stride=args.stride, level=args.level, dtype=dtype)
+    n_early = max(args.stride, int(round(0.35 * n_fit)) // args.stride * args.stride)
+    early = build_scene(case[0], n_early, GUESS, **kw)
+    scene = build_scene(case[0], n_fit, GUESS, **kw)
+    spec, prep_e, w_e = footage_setup(early, data, n_early)
+    _, prep, wpix = footage_setup(scene, data, n_fit)
     res = residual_fn_factory(spec)
-    cons = {n: Positive() for n in FREE}
-    init = {n: np.float32(GUESS[n]) for n in FREE}
     T = prep.video.shape[1]
-    windows = [max(2, T // 3), max(2, 2 * T // 3), T]
-    stages = [(jnp.asarray((np.arange(T) < k).astype(np.float32)),) for k in windows]
+    stages = [
+        ParamStage(("air_damping",), loss_args=(early, prep_e, w_e),
+                   stage_args=[(jnp.ones(prep_e.video.shape[1], dtype),)], steps=10,
+                   name="free fall"),
+        ParamStage(("k_struct", "air_damping"), scan={"k_struct": SCAN},
+                   stage_args=[(window(T, 0.5, dtype),), (window(T, 1.0, dtype),)],
+                   name="stiffness scale"),
+    ]  # fmt: skip
+    if args.untie:
+        stages.append(ParamStage(FREE, stage_args=[(window(T, 1.0, dtype),)], name="untied"))
+    free = FREE if args.untie else ("k_struct", "air_damping")
     t0 = time.perf_counter()
-    if hasattr(dcfit, "fit_lm"):
-        result = dcfit.fit_lm(
-            res, init, cons, loss_args=(scene, prep, wpix), stages=stages,
-            steps=steps, progress=False,
-        )  # fmt: skip
-        method = "lm (dc.fit.fit_lm)"
-        fitted = {k: float(np.asarray(v)) for k, v in result.params.items()}
-        loss, evals = float(result.loss), getattr(result, "evaluations", None)
-    else:
-        fitted, loss, evals = _optimistix_lm(res, init, (scene, prep, wpix), stages, steps, log_fn)
-        method = "lm (optimistix, 3 frame windows)"
+    out = fit_staged(
+        res,
+        {n: np.asarray(GUESS[n], dtype) for n in free},
+        {n: Positive() for n in free},
+        stages=stages,
+        loss_args=(scene, prep, wpix),
+        ties=None if args.untie else TIES,
+        settings=FitSettings(
+            method="lm",
+            steps=args.steps,
+            lm_stage_steps=max(2, args.steps // 2),
+            lm_xtol=1e-3,  # 0.1 % in the log-parameters: far below what the footage resolves
+            lm_ftol=1e-5,
+            lm_polish=0,  # undamped Gauss-Newton steps do not settle on a footage loss
+            # from a generic guess the first Gauss-Newton steps overshoot: start damped
+            # (lambda0 = max diag J^T J) rather than Marquardt's 1e-3 for a close start
+            lm_tau=1.0,
+            progress=False,
+        ),
+        log=lambda row: log_fn({k: v for k, v in row.items() if k != "free"}),
+    )  # fmt: skip
     wall = time.perf_counter() - t0
-    log_fn(dict(method=method, wall_s=round(wall, 1), loss=loss, fitted=fitted, steps=evals))
-    return fitted, wall, method, (res, prep, wpix)
+    fitted = {n: float(np.asarray(out.params[n])) for n in FREE}
+    method = "staged lm" + (" + untied" if args.untie else " (tied)")
+    log_fn(dict(method=method, wall_s=round(wall, 1), loss=out.loss, fitted=fitted,
+                evaluations=out.evaluations, status=out.status))  # fmt: skip
+    return fitted, wall, method, out.evaluations
 
 
 def profile_loss(video, masks, data, n_fit, stride):
@@ -311,8 +338,8 @@ def run_case(scene_name, regime, args, results):
     true_dyn = {n: truth_all[n] for n in ("d_struct", "d_shear", "d_flex", "air_damping")}
     head = dict(scene=scene_name, regime=regime, frames=F, fit_frames=n_fit,
                 size=int(data["images"].shape[2]))  # fmt: skip
-    kw = dict(size=head["size"], stride=args.stride, level=args.level)
-    fit_scene = build_scene(scene_name, n_fit, GUESS, **kw)
+    dtype = np.float64 if args.x64 else np.float32
+    kw = dict(size=head["size"], stride=args.stride, level=args.level, dtype=dtype)
     full_scene = build_scene(scene_name, F, GUESS, **kw)
     head["stride"] = args.stride
     x0 = np.asarray(full_scene.state.x)
@@ -322,27 +349,32 @@ def run_case(scene_name, regime, args, results):
         return log(dict(bench="cross_engine_fit", **head, **row))
 
     if args.steps > 0:
-        fitted, wall, method, _ = run_fit(fit_scene, data, n_fit, args.steps, stage_log)
+        fitted, wall, method, _ = run_fit((scene_name, regime), data, n_fit, args, stage_log)
     else:  # floor and loss profile only: the guess stands in for the fit
         fitted, wall, method = {n: float(GUESS[n]) for n in FREE}, 0.0, "none (guess)"
     fit_rows, pred_rows = slice(0, n_fit), slice(n_fit, F)
     out = dict(bench="cross_engine", **head, method=method, fit_wall_s=round(wall, 1),
                truth=truth, guess=GUESS, fitted=fitted)  # fmt: skip
     out["param_err_pct"] = {n: round(100 * (fitted[n] / truth[n] - 1), 2) for n in FREE}
-    fp = {n: jnp.float32(v) for n, v in fitted.items()}
-    tp = {n: jnp.float32(v) for n, v in {**truth, **true_dyn}.items()}
+    fp = {n: jnp.asarray(v, dtype) for n, v in fitted.items()}
+    tp = {n: jnp.asarray(v, dtype) for n, v in {**truth, **true_dyn}.items()}
     t = time.perf_counter()
-    out["fit"], _ = compare(full_scene, fp, data, fit_rows)
-    out["predict"], _ = compare(full_scene, fp, data, pred_rows)
-    out["floor_fit"], _ = compare(full_scene, tp, data, fit_rows)
-    out["floor_predict"], _ = compare(full_scene, tp, data, pred_rows)
+    run_fp = tuple(np.asarray(a) for a in _SIM_VIDEO(full_scene, fp))
+    run_tp = tuple(np.asarray(a) for a in _SIM_VIDEO(full_scene, tp))
+    out["fit"], _ = compare(full_scene, fp, data, fit_rows, run_fp)
+    out["predict"], _ = compare(full_scene, fp, data, pred_rows, run_fp)
+    out["floor_fit"], _ = compare(full_scene, tp, data, fit_rows, run_tp)
+    out["floor_predict"], _ = compare(full_scene, tp, data, pred_rows, run_tp)
     log(dict(bench="cross_engine_compare", **head, wall_s=round(time.perf_counter() - t, 1)))
     if args.profile:
         prof = []
         base = tp if args.profile_at == "truth" else fp
         out["profile_at"] = args.profile_at
         for k in truth["k_struct"] * np.exp(np.linspace(np.log(0.25), np.log(4.0), 7)):
-            p = {**base, "k_struct": jnp.float32(k)}
+            p = {**base, "k_struct": jnp.asarray(k, dtype)}
+            if not args.untie:  # along the tie: shear and flexion follow at the guess's ratios
+                for n in ("k_shear", "k_flex"):
+                    p[n] = jnp.asarray(k * GUESS[n] / GUESS["k_struct"], dtype)
             _, (video, masks) = compare(full_scene, p, data, fit_rows)
             prof.append((round(float(k), 2), profile_loss(video, masks, data, n_fit, args.stride)))
             log(dict(bench="cross_engine_profile", **head, k_struct=prof[-1][0], loss=prof[-1][1]))
@@ -431,7 +463,15 @@ def main(argv=None):
     ap.add_argument("--cases", nargs="*", help="scene:regime (default: all)")
     ap.add_argument("--data", default=str(DATA))
     ap.add_argument("--fit-frames", type=int, default=0, help="default: two thirds")
-    ap.add_argument("--steps", type=int, default=24, help="optimizer steps (all stages); 0: no fit")
+    ap.add_argument("--steps", type=int, default=12, help="LM steps per stage; 0: no fit")
+    ap.add_argument("--untie", action="store_true", help="a last stage fits all four untied")
+    ap.add_argument(
+        "--float32",
+        dest="x64",
+        action="store_false",
+        help="simulate in float32 (default float64: float32 round-off makes the "
+        "drape's contact trajectory, and so the loss, jump at the 1e-6 scale)",
+    )
     ap.add_argument("--stride", type=int, default=3, help="render every k-th frame")
     ap.add_argument("--size", type=int, default=64, help="fit and compare at size^2 (box)")
     ap.add_argument("--level", type=int, default=3, help="diffcloth tessellation level")
@@ -445,6 +485,8 @@ def main(argv=None):
     ap.add_argument("--out", default=str(HERE / "results.jsonl"))
     ap.add_argument("--md", default=str(HERE / "RESULTS.md"))
     a = ap.parse_args(argv)
+    if a.x64:
+        jax.config.update("jax_enable_x64", True)
     if not has_massspring():
         sys.exit("the protocol needs diffcloth's Provot model (diffcloth.physics.massspring)")
     cases = [tuple(c.split(":")) for c in a.cases] if a.cases else S.CASES

@@ -10,6 +10,7 @@
         identifiability = true, noise_sigma = 0.01,
         method = "auto" | "lm" | "adam" (auto: Levenberg-Marquardt for l2/pyramid and <= 16
         scalar parameters), stages = "default" | "none" | [{min_level = 2, frames = 0.5}, ...]
+        (a stage may also set free = [subset] and scan = {name = [factors]}: diffcloth.fit.staged)
         (LM coarse-to-fine), lm_patience = 6,
         ties = { shear = "stretch", bend = "1e-4 * stretch" }   (tied parameters, not fitted)
         targets = "folder"   (instead of [truth]: PNGs, one subfolder cam0, cam1, ... per camera
@@ -103,8 +104,17 @@ def _parse_engine(t: Mapping[str, Any], free) -> dict:
         except (ValueError, TypeError) as err:
             raise cfg.ConfigError(
                 f'[fit] stages = {stages!r}: {err}; allowed: "default", "none" or a list of '
-                "{ min_level = 0..8, frames = (0, 1] } tables"
+                "{ min_level = 0..8, frames = (0, 1], free = [names], scan = {name = [factors]} } "
+                "tables"
             ) from None
+        for i, st in enumerate(make_schedule(stages).stages):
+            named = list(st.free or ()) + ([st.scan[0]] if st.scan else [])
+            bad = [n for n in named if n not in free]
+            if bad:
+                raise cfg.ConfigError(
+                    f"[fit] stages[{i}]: {bad} not in [fit] free {list(free)} (a stage fits a "
+                    "subset of the free parameters)"
+                )
         out["stages"] = stages
     out["lm_patience"] = cfg.get_number(t, "lm_patience", 6, where=w, lo=1, hi=1000, integer=True)
     out["lm_stage_steps"] = cfg.get_number(

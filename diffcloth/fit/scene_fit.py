@@ -200,6 +200,7 @@ def fit(
     """
     from diffcloth import pipeline
     from diffcloth.fit.lm import fit_lm, fit_lm_multistart, num_scalars
+    from diffcloth.fit.schedule import make_schedule
     from diffcloth.fit.settings import resolve_settings
     from diffcloth.fit.ties import parse_ties
 
@@ -280,7 +281,13 @@ def fit(
             stop=stop,
             resume=resume,
         )
-        if multistart <= 1:
+        sched = make_schedule(s.stages)
+        if any(st.staged for st in sched.stages):
+            if multistart > 1:
+                raise ValueError("stages with free or scan run one start: set multistart = 1")
+            result = _fit_staged_schedule(res_fn, init, cons, sched, stage_args, stage_names,
+                                          (targets, scene), s)  # fmt: skip
+        elif multistart <= 1:
             result = fit_lm(res_fn, init, cons, **common)
         else:
             result = fit_lm_multistart(res_fn, inits, cons, **common)
@@ -311,6 +318,43 @@ def fit(
     if tie_set:
         for r in getattr(result, "results", [result]):
             _add_tied(r, tie_set)
+    return result
+
+
+def _fit_staged_schedule(res_fn, init, cons, sched, stage_args, stage_names, loss_args, s):
+    """A schedule whose stages change the free set or scan (`diffcloth.fit.staged`): one
+    `ParamStage` per schedule stage, then the final stage over every free parameter. Returns the
+    final stage's FitResult, with `stages` listing every stage (free set, scan, LM status)."""
+    from diffcloth.fit.staged import ParamStage, fit_staged
+
+    free = tuple(init)
+    stages = []
+    for st, args, name in zip(sched.stages, stage_args, stage_names, strict=False):
+        sub = st.free or free
+        unknown = [n for n in sub if n not in free]
+        if unknown:
+            raise ValueError(
+                f"stages: free {unknown} of stage '{name}' are not fitted (free, untied: {free})"
+            )
+        scan = {st.scan[0]: st.scan[1]} if st.scan else None
+        stages.append(ParamStage(sub, stage_args=[args], scan=scan, name=name))
+    stages.append(ParamStage(free, stage_args=[stage_args[-1]], name=stage_names[-1]))
+    out = fit_staged(res_fn, init, cons, stages=stages, loss_args=loss_args, settings=s)
+    result = out.results[-1]
+    result.evaluations = out.evaluations
+    result.wall_s = out.wall_s
+    result.stages = [
+        {
+            "name": row["name"] + ("" if set(row["free"]) == set(free) else
+                                   f" (free: {', '.join(row['free'])})")
+            + (f", scan {row['scan']['name']} -> {row['scan']['best']:.4g}" if "scan" in row
+               else ""),
+            "steps": int(r.iterations),
+            "loss": row["loss"],
+            "status": row["status"],
+        }
+        for row, r in zip(out.stages, out.results, strict=True)
+    ]  # fmt: skip
     return result
 
 

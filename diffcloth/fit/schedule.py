@@ -42,10 +42,18 @@ __all__ = [
 @dataclasses.dataclass(frozen=True)
 class Stage:
     """One coarse stage: pyramid levels >= min_level (0 = full resolution), equally weighted, over
-    the first `frames` fraction of the rendered frames (at least one frame)."""
+    the first `frames` fraction of the rendered frames (at least one frame).
+
+    free: the parameters this stage fits (None: all of the fit's); the others are held at their
+    current values (`diffcloth.fit.staged`): e.g. air damping alone on the free fall first.
+    scan: (name, (factor, ...)): before the stage's LM, the loss is evaluated at the current
+    value of `name` times each factor and the stage starts from the best (a global look along
+    one parameter; `name` must be free in the stage)."""
 
     min_level: int = 0
     frames: float = 1.0
+    free: tuple[str, ...] | None = None
+    scan: tuple[str, tuple[float, ...]] | None = None
 
     def __post_init__(self):
         if (
@@ -56,6 +64,32 @@ class Stage:
             raise ValueError(f"Stage: min_level={self.min_level!r} must be an integer in [0, 8]")
         if not (isinstance(self.frames, int | float) and 0 < self.frames <= 1):
             raise ValueError(f"Stage: frames={self.frames!r} must be in (0, 1]")
+        if self.free is not None:
+            free = (self.free,) if isinstance(self.free, str) else tuple(self.free)
+            if not free or not all(isinstance(n, str) for n in free):
+                raise ValueError(f"Stage: free={self.free!r} must be a non-empty list of names")
+            object.__setattr__(self, "free", free)
+        if self.scan is not None:
+            if isinstance(self.scan, Mapping):
+                if len(self.scan) != 1:
+                    raise ValueError(f"Stage: scan={dict(self.scan)!r} must name one parameter")
+                scan = next(iter(self.scan.items()))
+            else:
+                scan = tuple(self.scan)
+            name, factors = scan
+            f = np.asarray(factors, float) if not isinstance(factors, str) else np.zeros(0)
+            if f.ndim != 1 or f.size < 2 or not np.all(np.isfinite(f)) or np.any(f <= 0):
+                raise ValueError(
+                    f"Stage: scan {name!r} = {factors!r} must be a list of >= 2 positive factors"
+                )
+            if self.free is not None and name not in self.free:
+                raise ValueError(f"Stage: scan {name!r} is not in the stage's free {self.free}")
+            object.__setattr__(self, "scan", (str(name), tuple(float(x) for x in f)))
+
+    @property
+    def staged(self) -> bool:
+        """Whether this stage changes the free set or scans (needs `diffcloth.fit.staged`)."""
+        return self.free is not None or self.scan is not None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,9 +116,14 @@ class Schedule:
 DEFAULT_SCHEDULE = Schedule(stages=(Stage(min_level=2, frames=0.5), Stage(min_level=1, frames=1.0)))
 
 
+#: keys of one stage table in the config ([[fit.stages]])
+STAGE_KEYS = ("min_level", "frames", "free", "scan")
+
+
 def make_schedule(spec: Any) -> Schedule:
     """A Schedule from None (the default), "none" (no coarse stages), a Schedule, or a list of
-    {"min_level": int, "frames": float} tables (the config form)."""
+    {"min_level": int, "frames": float, "free": [names], "scan": {name: [factors]}} tables (the
+    config form)."""
     if spec is None:
         return DEFAULT_SCHEDULE
     if isinstance(spec, Schedule):
@@ -101,11 +140,21 @@ def make_schedule(spec: Any) -> Schedule:
             if isinstance(item, Stage):
                 stages.append(item)
                 continue
-            if not isinstance(item, Mapping) or set(item) - {"min_level", "frames"}:
+            if not isinstance(item, Mapping) or set(item) - set(STAGE_KEYS):
                 raise ValueError(
-                    f"schedule[{i}] = {item!r} must be a table with keys min_level, frames"
+                    f"schedule[{i}] = {item!r} must be a table with keys {', '.join(STAGE_KEYS)}"
                 )
-            stages.append(Stage(int(item.get("min_level", 0)), float(item.get("frames", 1.0))))
+            try:
+                stages.append(
+                    Stage(
+                        int(item.get("min_level", 0)),
+                        float(item.get("frames", 1.0)),
+                        free=item.get("free"),
+                        scan=item.get("scan"),
+                    )
+                )
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"schedule[{i}]: {err}") from None
         return Schedule(stages=tuple(stages))
     raise ValueError(f"schedule {spec!r} is not 'default', 'none' or a list of stages")
 
