@@ -4,7 +4,10 @@
     python benchmarks/physics.py --quick    # 13x10 and 32x32 only, fewer repeats
 
 Keys: bench, net ("cols x rows" as "RxC" -> e.g. "13x10"), integrator, step_us (forward, per substep,
-median), grad100_ms (forward + backward of a loss after 100 substeps w.r.t. the material, median),
+median, of one call rolling out one frame: 40 substeps symplectic, 100 implicit), symplectic only:
+step_rollout_us (per substep inside one call of 2000 substeps: the substep's own cost) and
+step_call_us (one jitted call of a single substep: mostly JAX dispatch overhead), grad100_ms
+(forward + backward of a loss after 100 substeps w.r.t. the material, median),
 peak_mb (XLA's compiled memory analysis of that gradient: arguments + outputs + temporaries).
 Extra cases: "forces_layout" (shifted slices vs gather/scatter-add) and "grad_memory" (gradient
 through 60 vs 600 frames).
@@ -52,6 +55,17 @@ def bench_case(rows, cols, integrator, repeats):
     step = jax.jit(lambda m, s: physics.rollout(net, sim, m, s, num_frames=frames).x[-1])
     t = _median_time(step, mat, s0, repeats=2 if integrator == "implicit" else repeats)
     step_us = t / (frames * sub) * 1e6
+    extra = {}
+    if integrator == "symplectic":
+        # per substep inside a long rollout (50 frames x 40 substeps in one call: the call's
+        # dispatch amortized away) and one jitted call of a single substep (dispatch-dominated)
+        long = jax.jit(lambda m, s: physics.rollout(net, sim, m, s, num_frames=50).x[-1])
+        extra["step_rollout_us"] = round(
+            _median_time(long, mat, s0, repeats=repeats) / 2000 * 1e6, 2
+        )
+        sim1 = physics.make_sim(1 / 30 / sub, num_substeps=1, integrator=integrator)
+        one = jax.jit(lambda m, s: physics.rollout(net, sim1, m, s, num_frames=1).x[-1])
+        extra["step_call_us"] = round(_median_time(one, mat, s0, repeats=repeats * 10) * 1e6, 2)
 
     # gradient through 100 substeps: 10 frames x 10 substeps (explicit) / 25 x 4 (implicit)
     gsub = 10 if integrator == "symplectic" else 4
@@ -77,6 +91,7 @@ def bench_case(rows, cols, integrator, repeats):
         grad100_ms=round(tg * 1e3, 2),
         peak_mb=round(_peak_mb(grad, mat), 2),
         substeps_per_frame=sub,
+        **extra,
     )
 
 

@@ -30,9 +30,14 @@ def default_cache_dir() -> Path:
 
 
 def enable_compilation_cache(
-    path: str | Path | None = None, min_compile_seconds: float = 1.0
+    path: str | Path | None = None, min_compile_seconds: float = 0.0
 ) -> Path:
-    """Cache compiled XLA programs on disk (programs that took >= min_compile_seconds to build)."""
+    """Cache compiled XLA programs on disk (programs that took >= min_compile_seconds to build).
+
+    The default 0 also caches the ~116 small eager programs of a fit (one CPU compile of
+    30-200 ms each): a warm `diffcloth fit configs/drape_fit.toml` spends 3.5 s instead of 7.8 s
+    in backend compilation (loaded machine; 1.8 MB of cache).
+    """
     import jax
 
     path = Path(path) if path is not None else default_cache_dir()

@@ -14,16 +14,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import materialize, safe_norm, safe_normalize
+from diffcloth._math import materialize, safe_normalize
 from diffcloth.render.boxes import BoxPoses, box_mesh, box_neighbors_np
 from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
 from diffcloth.render.fringe import fringe_depth
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
-from diffcloth.render.rays import ray_sphere
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
 from diffcloth.render.shadows import ShadowMaps, shadow_visibility
 from diffcloth.render.shadows import shadow_maps as build_shadow_maps
+from diffcloth.render.sphere_layer import _sphere_layer
 from diffcloth.render.textures import Textures
 from diffcloth.shapes import Plane, Sphere
 
@@ -65,64 +65,6 @@ def _face_normals(positions, faces, normals):
     fn = jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     side = jnp.sum(fn * jnp.sum(normals[faces], axis=1), axis=-1)
     return safe_normalize(jnp.where((side < 0)[:, None], -fn, fn))
-
-
-def _sphere_layer(
-    camera: Camera,
-    spheres: Sphere,
-    lights: Lights,
-    appearance: Appearance,
-    shadows: ShadowMaps | None = None,
-):
-    """Ray-cast spheres: premultiplied RGBA (H, W, 4) with antialiased rims, and view depth (H, W).
-
-    Coverage of a pixel is clip((r - d) / footprint + 1/2, 0, 1) with d the distance from the
-    sphere centre to the pixel's ray and footprint the pixel's width at that depth, so the rim is
-    a one-pixel ramp and the image is differentiable w.r.t. centre and radius at the silhouette.
-    """
-    origins, dirs = pixel_rays(camera)
-    sph = spheres.batched()
-    dtype = origins.dtype
-    big = jnp.asarray(1e10, dtype)
-
-    def spacing(a):
-        sx = jnp.linalg.norm(jnp.diff(a, axis=1), axis=-1)
-        sy = jnp.linalg.norm(jnp.diff(a, axis=0), axis=-1)
-        return jnp.maximum(
-            jnp.pad(sx, ((0, 0), (0, 1)), mode="edge"), jnp.pad(sy, ((0, 1), (0, 0)), mode="edge")
-        )
-
-    spacing_o, spacing_d = spacing(origins), spacing(dirs)
-
-    def one(center, radius):
-        c = jnp.reshape(center, (1, 1, 3))
-        t, hit, _ = ray_sphere(origins, dirs, c, radius)
-        t_close = -jnp.sum((origins - c) * dirs, axis=-1)
-        closest = origins + t_close[..., None] * dirs
-        dist = safe_norm(closest - c, axis=-1)  # 0 with a finite gradient for a ray through c
-        footprint = jnp.maximum(spacing_o + jnp.maximum(t_close, 0.0) * spacing_d, 1e-12)
-        alpha = jnp.clip((radius - dist) / footprint + 0.5, 0.0, 1.0)
-        alpha = jnp.where(t_close > 0, alpha, 0.0)
-        rim_point = c + radius * safe_normalize(closest - c)
-        point = jnp.where(
-            hit[..., None], origins + jnp.where(hit, t, 0.0)[..., None] * dirs, rim_point
-        )
-        _, depth = project(point, camera)
-        return alpha, jnp.where(alpha > 0, depth, big), point, safe_normalize(point - c)
-
-    alpha, depth, point, normal = jax.vmap(one)(sph.center, sph.radius)  # (ns, H, W, ...)
-    nearest = jnp.argmin(depth, axis=0)[None]
-    alpha = jnp.take_along_axis(alpha, nearest, axis=0)[0]
-    depth = jnp.take_along_axis(depth, nearest, axis=0)[0]
-    point = jnp.take_along_axis(point, nearest[..., None], axis=0)[0]
-    normal = jnp.take_along_axis(normal, nearest[..., None], axis=0)[0]
-    vis = shadow_visibility(shadows, point, normal)
-    diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance, vis)
-    amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
-    albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
-    color = albedo * (amb + diffuse) + jnp.reshape(appearance.specular, (1, 1, 3)) * specular
-    rgba = jnp.concatenate([color * alpha[..., None], alpha[..., None]], axis=-1)
-    return rgba, depth
 
 
 class _Combined(NamedTuple):

@@ -34,12 +34,14 @@ def _resolve(s: _Setup, ids, camera: Camera, neighbors, walk: int, budget: int |
     depth = bary[..., 0] * dv[..., 0] + bary[..., 1] * dv[..., 1] + bary[..., 2] * dv[..., 2]
     depth = jnp.where(ok, depth, BACKGROUND_DEPTH)
     cross = _crossings(s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk, budget)
+    # materialized: every consumer (interpolate per attribute and channel, antialias's shifted
+    # reads, compositing) would otherwise redo the per-pixel gathers and edge functions
     return Fragments(
-        triangle_id=jnp.where(ok, ids, -1).astype(jnp.int32),
-        barycentric=bary,
-        depth=depth,
+        triangle_id=materialize(jnp.where(ok, ids, -1).astype(jnp.int32)),
+        barycentric=materialize(bary),
+        depth=materialize(depth),
         crossings=cross.astype(dtype),
-        front_facing=ok & s.front[tri],
+        front_facing=materialize(ok & s.front[tri]),
     )
 
 

@@ -1,0 +1,83 @@
+"""Ray-cast analytic spheres as an image layer (premultiplied RGBA and view depth per pixel),
+depth-composited with the cloth by `frame.render`."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from diffcloth._math import materialize, safe_norm, safe_normalize
+from diffcloth.render.camera import Camera, pixel_rays, project
+from diffcloth.render.lights import Appearance, Lights
+from diffcloth.render.rays import ray_sphere
+from diffcloth.render.shade import blinn_phong
+from diffcloth.render.shadows import ShadowMaps, shadow_visibility
+from diffcloth.shapes import Sphere
+
+
+def _spacing(a):
+    """(H, W) distance of a per-pixel point or direction (H, W, 3) to its right / lower
+    neighbour's, the larger of the two (edge-padded)."""
+    sx = jnp.linalg.norm(jnp.diff(a, axis=1), axis=-1)
+    sy = jnp.linalg.norm(jnp.diff(a, axis=0), axis=-1)
+    return jnp.maximum(
+        jnp.pad(sx, ((0, 0), (0, 1)), mode="edge"), jnp.pad(sy, ((0, 1), (0, 0)), mode="edge")
+    )
+
+
+def _sphere_layer(
+    camera: Camera,
+    spheres: Sphere,
+    lights: Lights,
+    appearance: Appearance,
+    shadows: ShadowMaps | None = None,
+):
+    """Ray-cast spheres: premultiplied RGBA (H, W, 4) with antialiased rims, and view depth (H, W).
+
+    Coverage of a pixel is clip((r - d) / footprint + 1/2, 0, 1) with d the distance from the
+    sphere centre to the pixel's ray and footprint the pixel's width at that depth, so the rim is
+    a one-pixel ramp and the image is differentiable w.r.t. centre and radius at the silhouette.
+
+    The rays, their spacing and each sphere's hit data are materialized: XLA's CPU fusion would
+    otherwise recompute them in every consumer (per channel, per shading term); 0.55x the time
+    of the layer jitted alone at 256^2 with one sphere (benchmarks/interactive.py scene), about
+    neutral inside the whole `render` program.
+    """
+    origins, dirs = map(materialize, pixel_rays(camera))
+    sph = spheres.batched()
+    dtype = origins.dtype
+    big = jnp.asarray(1e10, dtype)
+    spacing_o, spacing_d = materialize(_spacing(origins)), materialize(_spacing(dirs))
+
+    def one(center, radius):
+        c = jnp.reshape(center, (1, 1, 3))
+        t, hit, _ = ray_sphere(origins, dirs, c, radius)
+        t_close = -jnp.sum((origins - c) * dirs, axis=-1)
+        closest = origins + t_close[..., None] * dirs
+        dist = safe_norm(closest - c, axis=-1)  # 0 with a finite gradient for a ray through c
+        footprint = jnp.maximum(spacing_o + jnp.maximum(t_close, 0.0) * spacing_d, 1e-12)
+        alpha = jnp.clip((radius - dist) / footprint + 0.5, 0.0, 1.0)
+        alpha = jnp.where(t_close > 0, alpha, 0.0)
+        rim_point = c + radius * safe_normalize(closest - c)
+        point = jnp.where(
+            hit[..., None], origins + jnp.where(hit, t, 0.0)[..., None] * dirs, rim_point
+        )
+        _, depth = project(point, camera)
+        return alpha, jnp.where(alpha > 0, depth, big), point, safe_normalize(point - c)
+
+    if sph.center.shape[0] == 1:  # one sphere: no nearest-of selection
+        alpha, depth, point, normal = map(materialize, one(sph.center[0], sph.radius[0]))
+    else:
+        alpha, depth, point, normal = jax.vmap(one)(sph.center, sph.radius)  # (ns, H, W, ...)
+        nearest = jnp.argmin(depth, axis=0)[None]
+        alpha = jnp.take_along_axis(alpha, nearest, axis=0)[0]
+        depth = jnp.take_along_axis(depth, nearest, axis=0)[0]
+        point = jnp.take_along_axis(point, nearest[..., None], axis=0)[0]
+        normal = jnp.take_along_axis(normal, nearest[..., None], axis=0)[0]
+    vis = shadow_visibility(shadows, point, normal)
+    diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance, vis)
+    amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
+    albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
+    color = albedo * (amb + diffuse) + jnp.reshape(appearance.specular, (1, 1, 3)) * specular
+    rgba = jnp.concatenate([color * alpha[..., None], alpha[..., None]], axis=-1)
+    return rgba, depth
