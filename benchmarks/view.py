@@ -12,7 +12,6 @@ before the first move, and is reported separately ("compile_s").
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import statistics
@@ -31,6 +30,9 @@ def main() -> None:
     args = ap.parse_args()
 
     import jax
+    from _timing import emit, meta
+
+    emit(meta("view.py"))
 
     from diffcloth.view.app import Viewer
     from diffcloth.view.model import load_view
@@ -97,18 +99,16 @@ def main() -> None:
     steps = model.num_frames * model.scene.sim.num_substeps
     base["resim_us_per_substep"] = round(1e3 * statistics.median(resim_ms) / steps, 1)
     for name, values in rows.items():
-        print(
-            json.dumps(
-                {
-                    **base,
-                    "mode": mode,
-                    "metric": name,
-                    "median": round(statistics.median(values), 1),
-                    "max": round(max(values), 1),
-                    "n": len(values),
-                }
-            ),
-            flush=True,
+        unit = name.removesuffix("_ms")
+        emit(
+            {
+                **base,
+                "mode": mode,
+                "metric": unit,
+                f"{unit}_ms": round(statistics.median(values), 1),
+                f"{unit}_max_ms": round(max(values), 1),
+                "n": len(values),
+            }
         )
 
 
