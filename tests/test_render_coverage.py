@@ -73,6 +73,7 @@ def _square_images():
     return surf, np.asarray(alpha), _exact_coverage(corners)
 
 
+@pytest.mark.slow  # compiles render_mesh (~20 s); the formula test above stays in the default run
 def test_slanted_silhouette_coverage_matches_the_box_filter():
     """Sub-pixel triangles, edges at 0.3 rad: every rim pixel's antialiased coverage equals the
     exact area (nvdiffrast's |t - 1/2| with a walk of 1 was off by 0.08 on average, and left
