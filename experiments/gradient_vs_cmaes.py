@@ -124,17 +124,14 @@ def main(config_path=None, *, smoke: bool = False) -> dict:
 
     # Levenberg-Marquardt (the default engine): each evaluation is one forward pass carrying
     # n = 2 tangents (the residuals and their forward-mode Jacobian).
+    def fit_lm(**extra):
+        return dcfit.fit(
+            sc, targets, settings.free, budget, init=init, loss=settings.loss, method="lm",
+            progress=not smoke, **extra,
+        )  # fmt: skip
+
     t0 = time.perf_counter()
-    lm = dcfit.fit(
-        sc,
-        targets,
-        settings.free,
-        budget,
-        init=init,
-        loss=settings.loss,
-        method="lm",
-        progress=not smoke,
-    )
+    lm = fit_lm()
     lm_total = time.perf_counter() - t0
     lm_err = [
         max_rel_error({n: lm.history.params[n][i] for n in truth}, truth)
@@ -146,19 +143,11 @@ def main(config_path=None, *, smoke: bool = False) -> dict:
     # start on the coarse levels of the first half of the frames (5 forward simulations), which
     # finds the truth's basin that a local method started here cannot reach.
     t0 = time.perf_counter()
-    staged = dcfit.fit(
-        sc,
-        targets,
-        settings.free,
-        budget,
-        init=init,
-        loss=settings.loss,
-        method="lm",
+    staged = fit_lm(
         stages=[
             {"min_level": 2, "frames": 0.5, "scan": {"bend": list(SCAN)}},
             {"min_level": 1, "frames": 1.0},
-        ],
-        progress=not smoke,
+        ]
     )
     staged_total = time.perf_counter() - t0
     staged_err = max_rel_error(staged.params, truth)
