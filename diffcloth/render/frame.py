@@ -413,8 +413,11 @@ def render(
         img, cloth_mask = img[..., :4], img[..., 4]
     else:
         cloth_mask = img[..., 3]
-    # depth tests of the ray-cast layers: the cloth's antialiased fringe takes its neighbour's depth
-    depth = fringe_depth(buf.surface_id >= 0, buf.depth)
+    # depth tests of the ray-cast layers. Spheres: the cloth's own depth (a fringe pixel has none,
+    # so a sphere behind is drawn over it): cloth resting on a sphere would otherwise flip whole
+    # fringe pixels between over and under as it moves (a jump in the loss). Planes: the fringe
+    # takes its covered neighbour's depth (render/fringe.py).
+    depth = buf.depth
     if spheres is not None and draw_spheres:
         sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)
@@ -425,6 +428,7 @@ def render(
         cloth_mask = jnp.where(front[..., 0], (1.0 - sphere_rgba[..., 3]) * cloth_mask, cloth_mask)
         depth = jnp.minimum(depth, sphere_depth)
     if planes is not None:
+        depth = jnp.minimum(depth, fringe_depth(buf.surface_id >= 0, buf.depth))
         plane_rgba, plane_depth = _plane_layer(
             camera, planes, lights, appearance, plane_color, maps
         )
