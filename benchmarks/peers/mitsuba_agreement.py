@@ -46,6 +46,8 @@ from benchmarks.cross_engine import scenes as S  # noqa: E402
 from benchmarks.cross_engine.mitsuba_scene import ClothRenderer, mi  # noqa: E402
 
 FRAMES = (6, 12, 20, 30, 45, 60)
+#: diffcloth's sky directions for ambient occlusion (Mitsuba's environment is occluded too)
+AO_DIRECTIONS = 32
 
 
 def warp_frames(regime: str, frames):
@@ -59,7 +61,7 @@ def warp_frames(regime: str, frames):
     return [nets[f] for f in frames]
 
 
-def diffcloth_renderer(size: int, shadows: bool, level: int = 8):
+def diffcloth_renderer(size: int, shadows: bool, level: int = 8, ambient_occlusion: int = 0):
     from diffcloth import render, surface
     from diffcloth.shapes import Plane, Sphere
 
@@ -94,6 +96,9 @@ def diffcloth_renderer(size: int, shadows: bool, level: int = 8):
         rkw["plane_color"] = S.FLOOR_ALBEDO
     if "shadow_map_size" in params:
         rkw["shadow_map_size"] = 512
+    ao = ambient_occlusion if "ambient_occlusion" in params else 0
+    if ao:
+        rkw["ambient_occlusion"] = ao
 
     def frame(net):
         surf = surface.tessellate(net, level, "bspline", flip=True)
@@ -104,7 +109,7 @@ def diffcloth_renderer(size: int, shadows: bool, level: int = 8):
             for cam in cams
         ])  # fmt: skip
 
-    return jax.jit(frame), bool(has_shadows and shadows), "planes" in params
+    return jax.jit(frame), bool(has_shadows and shadows), "planes" in params, ao
 
 
 def compare(dc_imgs, mi_imgs):
@@ -126,6 +131,10 @@ def main(argv=None):
     ap.add_argument("--regime", default="stiff", choices=sorted(S.REGIMES))
     ap.add_argument("--spp", type=int, default=128)
     ap.add_argument("--no-shadows", dest="shadows", action="store_false")
+    ap.add_argument(
+        "--ambient-occlusion", type=int, default=AO_DIRECTIONS,
+        help="diffcloth's sky directions for the occluded ambient light (0: unoccluded ambient)",
+    )  # fmt: skip
     ap.add_argument("--quick", action="store_true", help="128^2 only, 2 frames, 64 spp")
     ap.add_argument("--out", help="also write the JSON lines to this file")
     ap.add_argument("--save-images", help="npz with both renderers' images")
@@ -154,7 +163,9 @@ def main(argv=None):
         )  # fmt: skip
         mi_imgs = np.stack([mr.render(x) for x in nets], axis=1)  # (cams, F, H, W, 3)
         t1 = time.perf_counter()
-        frame, shadowed, planes = diffcloth_renderer(size, a.shadows)
+        frame, shadowed, planes, ao = diffcloth_renderer(
+            size, a.shadows, ambient_occlusion=a.ambient_occlusion
+        )
         dc_imgs = np.stack([np.asarray(frame(jnp.asarray(x, jnp.float32))) for x in nets], 1)
         t2 = time.perf_counter()
         ious, rmse, md, mm = compare(dc_imgs, mi_imgs)
@@ -163,7 +174,7 @@ def main(argv=None):
         ]
         emit(dict(
             bench="peers_mitsuba_agreement", size=size, frames=len(nets), cameras=mi_imgs.shape[0],
-            diffcloth_shadows=shadowed, diffcloth_floor=planes,
+            diffcloth_shadows=shadowed, diffcloth_floor=planes, diffcloth_ao=ao,
             iou_mean=round(float(ious.mean()), 4), iou_min=round(float(ious.min()), 4),
             rmse_cloth=round(rmse, 4),
             rmse_per_frame=[round(p[1], 4) for p in per_frame],

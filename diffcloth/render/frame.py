@@ -23,6 +23,7 @@ from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
 from diffcloth.render.shadows import ShadowMaps, shadow_visibility
 from diffcloth.render.shadows import shadow_maps as build_shadow_maps
+from diffcloth.render.sky import SkyMaps, sky_visibility
 from diffcloth.render.sphere_layer import _sphere_layer
 from diffcloth.render.textures import Textures
 from diffcloth.shapes import Plane, Sphere
@@ -108,12 +109,13 @@ def _plane_layer(
     appearance: Appearance,
     color,
     shadows: ShadowMaps | None = None,
+    sky: SkyMaps | None = None,
 ):
     """Ray-cast planes (seen from their free side, up to the far plane): opaque Lambertian
     RGBA (H, W, 4) (premultiplied; alpha 1 where a plane is hit) and view depth (H, W).
 
     Colour = color * (appearance.ambient * ambient light + sum_l radiance_l max(N.L_l, 0) V_l),
-    V_l the shadow visibility; no specular (a matte ground).
+    V_l the shadow visibility; no specular (a matte ground). `sky`: ambient occlusion.
     """
     origins, dirs = pixel_rays(camera)
     pl = planes.batched()
@@ -139,6 +141,8 @@ def _plane_layer(
     vis = shadow_visibility(shadows, point, normal)
     diffuse, _ = blinn_phong(normal, -dirs, point, lights, appearance, vis)
     amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
+    if sky is not None:
+        amb = amb * sky_visibility(sky, point, normal)[..., None]
     rgb = jnp.reshape(jnp.asarray(color, point.dtype), (1, 1, 3)) * (amb + diffuse)
     alpha = hit.astype(point.dtype)[..., None]
     return jnp.concatenate([rgb * alpha, alpha], axis=-1), depth
@@ -208,11 +212,13 @@ def surface_gbuffer(
     shadows: ShadowMaps | None = None,
     boxes: BoxPoses | None = None,
     triangle_mask=None,
+    sky: SkyMaps | None = None,
 ):
     """Rasterize a Surface into the shader's per-pixel inputs.
 
     shadows: optional `shadows.shadow_maps` output: fills `visibility` per pixel (and lights the
-    Gouraud vertices with per-vertex visibility).
+    Gouraud vertices with per-vertex visibility). sky: optional `sky.sky_maps` output: fills
+    `ambient_visibility` (ambient occlusion).
 
     Returns:
       (ShadingBuffer, raster GBuffer (ids, depth, crossings for `antialias`), eye vectors (H, W, 3)
@@ -246,9 +252,10 @@ def surface_gbuffer(
         else:
             eye4 = jnp.concatenate([eye_rays[0, 0], jnp.zeros(1, pos.dtype)])
         vvis = shadow_visibility(shadows, pos, nrm)
-        attrs["color"] = light_vertices(pos, nrm, eye4, lights, appearance, vvis)
+        av, av_back = sky_visibility(sky, pos, nrm), sky_visibility(sky, pos, -nrm)
+        attrs["color"] = light_vertices(pos, nrm, eye4, lights, appearance, vvis, av)
         if two_sided:
-            attrs["color_back"] = light_vertices(pos, -nrm, eye4, lights, appearance, vvis)
+            attrs["color_back"] = light_vertices(pos, -nrm, eye4, lights, appearance, vvis, av_back)
     buf = rasterize_gbuffer(
         pos,
         faces,
@@ -286,6 +293,7 @@ def surface_gbuffer(
         face_normal=face_normal,
         color=color,
         visibility=shadow_visibility(shadows, a["position"], normal),
+        ambient_visibility=sky_visibility(sky, a["position"], normal),
     )
     return gb, buf, eye_rays
 
@@ -314,6 +322,8 @@ def render(
     shadow_map_size: int = 256,
     return_cloth_mask: bool = False,
     shadow_maps: ShadowMaps | None = None,
+    ambient_occlusion: int = 0,
+    sky_maps: SkyMaps | None = None,
 ):
     """Rasterize, shade and composite a cloth surface.
 
@@ -346,6 +356,11 @@ def render(
       shadow_map_size: static shadow-map size in texels (used only by lights with shadows).
       shadow_maps: optional precomputed `frame_shadow_maps(surface, lights, ...)` (shared by
         several cameras of one frame); built here when None and a light casts shadows.
+      ambient_occlusion: static number K of sky directions of the occluded ambient light (0: off,
+        the ambient term unoccluded as before); the cloth, boxes, spheres and planes block the
+        ambient environment on every drawn surface (`diffcloth.render.sky`). Its maps use
+        `shadow_map_size` // 2 texels (at least 8).
+      sky_maps: optional precomputed `sky.frame_sky_maps(...)` (shared by several cameras).
       return_cloth_mask: also return the visible cloth coverage (H, W) in [0, 1]: the antialiased
         cloth alpha (soft at silhouettes, so differentiable w.r.t. the geometry there) times the
         part of each pixel not covered by a sphere or plane drawn in front. The image is unchanged.
@@ -368,6 +383,18 @@ def render(
         maps = frame_shadow_maps(
             surface, lights, spheres=spheres, occluders=occluders, size=shadow_map_size
         )
+    sky = sky_maps
+    if sky is None and ambient_occlusion:
+        from diffcloth.render.sky import frame_sky_maps
+
+        sky = frame_sky_maps(
+            surface,
+            ambient_occlusion,
+            spheres=spheres,
+            occluders=occluders,
+            planes=planes,
+            size=max(shadow_map_size // 2, 8),
+        )
     gb, buf, eye_rays = surface_gbuffer(
         surface,
         camera,
@@ -380,6 +407,7 @@ def render(
         shadows=maps,
         boxes=boxes,
         triangle_mask=_object_mask(surface, camera) if cull else None,
+        sky=sky,
     )
     img = shade(
         gb,
@@ -398,6 +426,8 @@ def render(
             gb.normal, eye_rays, gb.position, lights, appearance, gb.visibility
         )
         amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
+        if gb.ambient_visibility is not None:
+            amb = amb * gb.ambient_visibility[..., None]
         albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
         spec = jnp.reshape(appearance.specular, (1, 1, 3))
         box_rgb = (albedo * (amb + diffuse) + spec * specular) * gb.mask[..., None]
@@ -419,7 +449,7 @@ def render(
     # takes its covered neighbour's depth (render/fringe.py).
     depth = buf.depth
     if spheres is not None and draw_spheres:
-        sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps)
+        sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps, sky)
         # cloth resting on a sphere wins ties (relative depth bias 1e-4)
         front = (sphere_depth < depth * (1.0 - 1e-4))[..., None]
         over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
@@ -430,7 +460,7 @@ def render(
     if planes is not None:
         depth = jnp.minimum(depth, fringe_depth(buf.surface_id >= 0, buf.depth))
         plane_rgba, plane_depth = _plane_layer(
-            camera, planes, lights, appearance, plane_color, maps
+            camera, planes, lights, appearance, plane_color, maps, sky
         )
         front = (plane_depth < depth)[..., None]
         cloth_mask = jnp.where(front[..., 0], (1.0 - plane_rgba[..., 3]) * cloth_mask, cloth_mask)

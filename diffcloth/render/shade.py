@@ -83,6 +83,8 @@ class ShadingBuffer:
         "gouraud".
       visibility: optional (H, W, nl) shadow visibility of each light in [0, 1] (from
         `shadows.shadow_visibility`); multiplies every light's radiance. None: no shadows.
+      ambient_visibility: optional (H, W) visible fraction of the ambient environment in [0, 1]
+        (from `sky.sky_visibility`, ambient occlusion); multiplies the ambient term. None: 1.
     """
 
     position: jax.Array
@@ -94,6 +96,7 @@ class ShadingBuffer:
     face_normal: jax.Array | None = None
     color: jax.Array | None = None
     visibility: jax.Array | None = None
+    ambient_visibility: jax.Array | None = None
 
 
 # ----------------------------------------------------------------------------- vector helpers
@@ -129,16 +132,22 @@ def blinn_phong(normals, eyes, positions, lights: Lights, appearance: Appearance
     return diffuse, specular
 
 
-def _lit(albedo, normals, eyes, positions, lights, appearance, visibility=None):
+def _ambient(appearance, lights, like, ambient_visibility=None):
+    """Ambient light (..., 3) shaped like `like`, times the occlusion (...) if given."""
+    amb = _bc(appearance.ambient * lights.ambient, like)
+    return amb if ambient_visibility is None else amb * ambient_visibility[..., None]
+
+
+def _lit(albedo, normals, eyes, positions, lights, appearance, visibility=None, amb_vis=None):
     diffuse, specular = blinn_phong(normals, eyes, positions, lights, appearance, visibility)
-    ambient = _bc(appearance.ambient * lights.ambient, diffuse)
+    ambient = _ambient(appearance, lights, diffuse, amb_vis)
     return (
         _bc(albedo, diffuse) * (ambient + diffuse) + _bc(appearance.specular, specular) * specular
     )
 
 
 def light_vertices(
-    positions, normals, eye, lights: Lights, appearance: Appearance, visibility=None
+    positions, normals, eye, lights: Lights, appearance: Appearance, visibility=None, amb_vis=None
 ):
     """Per-vertex Blinn-Phong colour for Gouraud shading (slide "per-vertex diffuse").
 
@@ -147,6 +156,7 @@ def light_vertices(
       normals: (n, 3) vertex normals (renormalised).
       eye: (3,) or (4,) eye, see `view_vectors`.
       visibility: optional (n, nl) shadow visibility per vertex and light.
+      amb_vis: optional (n,) ambient occlusion per vertex (`sky.sky_visibility`).
     Returns:
       (n, 3) colour = diffuse * (ambient * ambient_light + sum radiance max(N.L, 0))
       + specular * sum radiance max(N.H, 0)^shininess. Rasterize it as an attribute into
@@ -154,7 +164,7 @@ def light_vertices(
     """
     n = _normalize(normals)
     e = view_vectors(eye, positions)
-    return _lit(appearance.diffuse, n, e, positions, lights, appearance, visibility)
+    return _lit(appearance.diffuse, n, e, positions, lights, appearance, visibility, amb_vis)
 
 
 def minnaert_factor(nl, ne, k):
@@ -312,7 +322,7 @@ def shade(
     mask = g.mask
     covered = mask > 0
     p = g.position
-    vis = g.visibility
+    vis, av = g.visibility, g.ambient_visibility
     e = view_vectors(eye, p)
     n = _normalize(g.normal)
 
@@ -335,7 +345,7 @@ def shade(
         return materialize(nb)  # read by several lighting terms: computed once
 
     env = tex.env if tex.env is not None else _default_sky(jnp.dtype(dtype).name)
-    ambient = _bc(appearance.ambient * lights.ambient, p)
+    ambient = _ambient(appearance, lights, p, av)
     diffuse_color = _bc(appearance.diffuse, p)
     specular_color = _bc(appearance.specular, p)
     reflectance = _bc(appearance.reflectance, p)
@@ -350,11 +360,11 @@ def shade(
 
     if mode == "flat":
         albedo = diffuse_color * texture_rgba()[..., :3]
-        rgb = _lit(albedo, _normalize(g.face_normal), e, p, lights, appearance, vis)
+        rgb = _lit(albedo, _normalize(g.face_normal), e, p, lights, appearance, vis, av)
     elif mode == "gouraud":
         rgb = g.color
     elif mode == "phong":
-        rgb = _lit(diffuse_color * texture_rgba()[..., :3], n, e, p, lights, appearance, vis)
+        rgb = _lit(diffuse_color * texture_rgba()[..., :3], n, e, p, lights, appearance, vis, av)
     elif mode == "bump_diffuse":
         diffuse, _ = blinn_phong(bumped(), e, p, lights, appearance, vis)
         rgb = diffuse_color * texture_rgba()[..., :3] * (ambient + diffuse)
@@ -382,7 +392,8 @@ def shade(
         a = jnp.clip(appearance.second_pass_alpha * rgba[..., 3:4], 0.0, 1.0)
         rgb = first * (1.0 - a) + a * diffuse_color * rgba[..., :3] + specular_color * specular
     elif mode == "sphere_reflection":
-        base = _lit(diffuse_color * texture_rgba()[..., :3], n, e, p, lights, appearance, vis)
+        albedo = diffuse_color * texture_rgba()[..., :3]
+        base = _lit(albedo, n, e, p, lights, appearance, vis, av)
         sphere_color, blend = trace_spheres(p, reflect(e, n), spheres, lights, appearance)
         rgb = base + blend[..., None] * (reflectance * sphere_color - base)
     else:  # reflect_refract

@@ -12,6 +12,7 @@ from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.rays import ray_sphere
 from diffcloth.render.shade import blinn_phong
 from diffcloth.render.shadows import ShadowMaps, shadow_visibility
+from diffcloth.render.sky import SkyMaps, sky_visibility
 from diffcloth.shapes import Sphere
 
 
@@ -31,6 +32,7 @@ def _sphere_layer(
     lights: Lights,
     appearance: Appearance,
     shadows: ShadowMaps | None = None,
+    sky: SkyMaps | None = None,
 ):
     """Ray-cast spheres: premultiplied RGBA (H, W, 4) with antialiased rims, and view depth (H, W).
 
@@ -77,6 +79,8 @@ def _sphere_layer(
     vis = shadow_visibility(shadows, point, normal)
     diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance, vis)
     amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
+    if sky is not None:  # ambient occlusion
+        amb = amb * sky_visibility(sky, point, normal)[..., None]
     albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
     color = albedo * (amb + diffuse) + jnp.reshape(appearance.specular, (1, 1, 3)) * specular
     rgba = jnp.concatenate([color * alpha[..., None], alpha[..., None]], axis=-1)

@@ -1,0 +1,179 @@
+"""Occluded ambient light ("sky visibility", ambient occlusion) from K fixed sky directions.
+
+The ambient light of `Lights` stands for a uniform environment: radiance `ambient` arriving from
+every direction, so an unoccluded Lambertian point reflects albedo * ambient whatever its normal.
+With ambient occlusion the environment is blocked by the scene: the cloth (and extra occluder
+triangles such as boxes), analytic spheres and ground planes. The visible fraction of the
+cosine-weighted hemisphere around the normal N is estimated from K fixed, deterministic directions
+d_k spread evenly over the whole sphere (a Fibonacci lattice):
+
+    A(p, N) = sum_k w_k V_k(p) / sum_k w_k,   w_k = max(N . d_k, 0),
+
+with V_k in [0, 1] the visibility along d_k: the shadow machinery of `render.shadows` (one
+orthographic soft shadow map of the triangle occluders per direction, percentage-closer filtered,
+times the analytic sphere occlusion), each direction treated as a disc light of the angular radius
+of its share of the sphere (acos(1 - 2/K), capped at the softness range), times the planes'
+occlusion: an (infinite) plane hides the directions that point into it from its free side, with a
+smooth ramp over dot(d, n_plane) in [-1/K, 0] (continuous in the plane's normal; for a plane
+normal along +-y no lattice direction lies inside the ramp, so it equals the hard cut). The
+shaders multiply
+the ambient term by A. An unoccluded point gets A = 1 exactly (the old ambient, bitwise for the
+ratio of two equal sums up to rounding), a point under an occluder less; A is smooth in the
+geometry wherever the soft shadows are (no hard jumps: PCF edges, smoothstep sphere discs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffcloth._math import safe_div, safe_normalize
+from diffcloth.render.lights import SOFTNESS_RANGE, Lights
+from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility
+from diffcloth.shapes import Plane, Sphere
+
+#: allowed number of sky directions (0 = off)
+AO_RANGE = (0, 256)
+#: filter taps per axis of each direction's shadow-map lookup (AO is low-frequency)
+SKY_TAPS = 3
+
+
+def sky_directions(k: int) -> np.ndarray:
+    """(k, 3) unit directions spread evenly over the sphere (Fibonacci lattice, +y up),
+    deterministic. Heights z_i = 1 - (2 i + 1) / k, so none is exactly horizontal for even k."""
+    i = np.arange(k, dtype=np.float64)
+    y = 1.0 - (2.0 * i + 1.0) / k
+    r = np.sqrt(np.maximum(1.0 - y * y, 0.0))
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=-1)
+
+
+def sky_softness(k: int) -> float:
+    """Angular radius in degrees of one direction's share of the sphere (a cap of area 4 pi / k),
+    clipped to the lights' softness range."""
+    lo, hi = SOFTNESS_RANGE
+    return float(np.clip(math.degrees(math.acos(1.0 - 2.0 / k)), lo, hi))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SkyMaps:
+    """Per-frame occlusion data of the K sky directions.
+
+    Attributes:
+      shadows: ShadowMaps of K directional 'sky lights' (cloth/occluder maps, spheres), or None
+        when there is no triangle or sphere occluder.
+      directions: (K, 3) unit sky directions.
+      plane_normal: (npl, 3) unit normals of the occluding planes, or None.
+      ramp: () 1/K: width in dot(d, n_plane) of the planes' horizon ramp.
+    """
+
+    shadows: ShadowMaps | None
+    directions: jax.Array
+    plane_normal: jax.Array | None
+    ramp: jax.Array
+
+
+def sky_maps(
+    k: int,
+    *,
+    mesh=None,
+    spheres: Sphere | None = None,
+    planes: Plane | None = None,
+    size: int = 128,
+    dtype=None,
+) -> SkyMaps | None:
+    """Build the sky-visibility data of one frame.
+
+    Args:
+      k: static number of sky directions (AO_RANGE; 0: None is returned, AO off).
+      mesh: optional triangle occluder (positions (n, 3), faces (m, 3)[, neighbors (m, 3)]), m.
+      spheres: optional analytic sphere occluders.
+      planes: optional planes; each hides the directions pointing into it (receivers are taken
+        to lie on its free side).
+      size: static shadow-map size in texels of each direction's map.
+      dtype: float dtype (default: the mesh's, else JAX's default float).
+    Returns:
+      SkyMaps or None (k == 0).
+    """
+    lo, hi = AO_RANGE
+    if not isinstance(k, int | np.integer) or isinstance(k, bool) or not lo <= k <= hi:
+        raise ValueError(f"ambient_occlusion must be an int in [{lo}, {hi}] (0 = off), got {k!r}")
+    if k == 0:
+        return None
+    if dtype is None:
+        dtype = mesh[0].dtype if mesh is not None else jnp.zeros(()).dtype
+    dirs = jnp.asarray(sky_directions(int(k)), dtype)
+    soft = sky_softness(int(k))
+    maps = None
+    if mesh is not None or spheres is not None:
+        z = jnp.zeros((0,), dtype)
+        sky = Lights(
+            ambient=jnp.zeros((3,), dtype),
+            direction=dirs,
+            direction_color=jnp.ones((k, 3), dtype),
+            direction_intensity=jnp.ones((k,), dtype),
+            point_position=jnp.zeros((0, 3), dtype),
+            point_color=jnp.zeros((0, 3), dtype),
+            point_intensity=z,
+            point_attenuation=z,
+            direction_softness=jnp.full((k,), soft, dtype),
+            point_softness=z,
+            shadows=(True,) * int(k),
+        )
+        maps = shadow_maps(sky, mesh=mesh, spheres=spheres, size=int(size))
+    pn = None if planes is None else safe_normalize(planes.batched().normal.astype(dtype))
+    ramp = jnp.asarray(1.0 / k, dtype)
+    return SkyMaps(maps, dirs, pn, ramp)
+
+
+def _ramp(x):
+    x = jnp.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def sky_visibility(sky: SkyMaps | None, points, normals):
+    """Fraction A of the cosine-weighted environment visible at receivers.
+
+    Args:
+      sky: from `sky_maps` (None: no ambient occlusion).
+      points: (..., 3) world positions in m; normals: (..., 3) normals of the lit side (need not
+        be unit). Differentiable.
+    Returns:
+      (...,) A in [0, 1] (module docstring); None when sky is None.
+    """
+    if sky is None:
+        return None
+    n = safe_normalize(normals)
+    w = jnp.maximum(jnp.einsum("...c,kc->...k", n, sky.directions), 0.0)  # (..., K)
+    vis = jnp.ones_like(w)
+    if sky.shadows is not None:
+        vis = shadow_visibility(sky.shadows, points, normals, taps=SKY_TAPS)
+    if sky.plane_normal is not None:
+        cos = sky.directions @ sky.plane_normal.T  # (K, npl)
+        vis = vis * jnp.prod(_ramp(cos / sky.ramp + 1.0), axis=-1)
+    return jnp.clip(safe_div(jnp.sum(w * vis, -1), jnp.sum(w, -1)), 0.0, 1.0)
+
+
+def frame_sky_maps(
+    surface, k: int, *, spheres=None, occluders=None, planes=None, size: int = 128
+) -> SkyMaps | None:
+    """Sky data of one frame: the cloth `surface` (plus `occluders` triangles (positions (q, 3),
+    faces (r, 3))) as the mesh occluder, `spheres` and `planes` analytic; None when k == 0.
+    Shapes as `sky_maps`."""
+    from diffcloth.render.frame import _occluder_mesh
+
+    if not k:
+        return None
+    return sky_maps(
+        k,
+        mesh=_occluder_mesh(surface, occluders),
+        spheres=spheres,
+        planes=planes,
+        size=size,
+        dtype=surface.positions.dtype,
+    )
