@@ -17,7 +17,7 @@ import numpy as np
 from diffcloth._math import materialize, safe_normalize
 from diffcloth.render.boxes import BoxPoses, box_mesh, box_neighbors_np
 from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
-from diffcloth.render.fringe import fringe_depth
+from diffcloth.render.fringe import fringe_depth, layer_in_front
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
@@ -443,19 +443,23 @@ def render(
         img, cloth_mask = img[..., :4], img[..., 4]
     else:
         cloth_mask = img[..., 3]
-    # depth tests of the ray-cast layers. Spheres: the cloth's own depth (a fringe pixel has none,
-    # so a sphere behind is drawn over it): cloth resting on a sphere would otherwise flip whole
-    # fringe pixels between over and under as it moves (a jump in the loss). Planes: the fringe
-    # takes its covered neighbour's depth (render/fringe.py).
+    # depth tests of the ray-cast layers: the fringe (antialiased cloth on a pixel whose centre
+    # misses it) takes its covered neighbour's depth (render/fringe.py); against spheres with a
+    # soft test (a hard one flipped whole fringe pixels of cloth resting on a sphere as it moved:
+    # a jump in the loss)
     depth = buf.depth
     if spheres is not None and draw_spheres:
         sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps, sky)
-        # cloth resting on a sphere wins ties (relative depth bias 1e-4)
-        front = (sphere_depth < depth * (1.0 - 1e-4))[..., None]
+        # weight of the sphere in front; cloth resting on a sphere wins ties
+        pixel = 2.0 / (camera.height * camera.projection[1, 1])
+        front = layer_in_front(
+            buf.surface_id >= 0, buf.depth, sphere_depth, pixel, camera.is_perspective
+        )[..., None]
         over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
         under = img + (1.0 - img[..., 3:]) * sphere_rgba  # cloth over sphere
-        img = jnp.where(front, over, under)
-        cloth_mask = jnp.where(front[..., 0], (1.0 - sphere_rgba[..., 3]) * cloth_mask, cloth_mask)
+        blend = under + front * (over - under)
+        img = jnp.where(front >= 1.0, over, jnp.where(front <= 0.0, under, blend))
+        cloth_mask = cloth_mask * (1.0 - front[..., 0] * sphere_rgba[..., 3])
         depth = jnp.minimum(depth, sphere_depth)
     if planes is not None:
         depth = jnp.minimum(depth, fringe_depth(buf.surface_id >= 0, buf.depth))
