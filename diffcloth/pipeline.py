@@ -138,6 +138,14 @@ def render_frame(
         occluders=occluders,
         size=getattr(scene, "shadow_map_size", 256),
     )
+    sky = render.sky.frame_sky_maps(
+        surf,
+        getattr(scene, "ambient_occlusion", 0),
+        spheres=spheres,
+        occluders=occluders,
+        planes=planes,
+        size=max(getattr(scene, "shadow_map_size", 256) // 2, 8),
+    )
     images, masks = [], []
     for i, camera in enumerate(scene.cameras):
         background = scene.background
@@ -157,6 +165,7 @@ def render_frame(
             planes=planes,
             plane_color=getattr(scene, "plane_color", render.PLANE_COLOR),
             shadow_maps=maps,
+            sky_maps=sky,
             boxes=boxes,
             cull=getattr(scene, "cull", False),
         )

@@ -50,6 +50,8 @@ class Scene:
       draw_planes, plane_color: static; draw the plane colliders as matte ground of that linear
         albedo (shadow receivers).
       shadow_map_size: static shadow-map size of the lights with shadows (texels).
+      ambient_occlusion: static number of sky directions of the occluded ambient light (0: off;
+        `render.sky`); its maps have shadow_map_size // 2 texels.
       cull: static; object-level frustum culling of the cloth in each camera.
       deform: static tuple of `config.render.DeformConfig` ([[deform]] waves / ripples applied
         to the rendered surface at each frame's time).
@@ -80,6 +82,7 @@ class Scene:
     draw_planes: bool = dataclasses.field(default=False, metadata={"static": True})
     plane_color: tuple = dataclasses.field(default=(0.6, 0.6, 0.6), metadata={"static": True})
     shadow_map_size: int = dataclasses.field(default=256, metadata={"static": True})
+    ambient_occlusion: int = dataclasses.field(default=0, metadata={"static": True})
     cull: bool = dataclasses.field(default=False, metadata={"static": True})
     deform: tuple = dataclasses.field(default=(), metadata={"static": True})
 
@@ -228,6 +231,7 @@ def build_scene(
         draw_planes=rc.draw_planes,
         plane_color=tuple(rc.plane_color),
         shadow_map_size=rc.shadow_map_size,
+        ambient_occlusion=rc.ambient_occlusion,
         cull=rc.cull,
         deform=tuple(config.deform),
         capture=_build_capture(config.cameras, rc, dtype),

@@ -45,6 +45,7 @@ class RenderConfig:
     draw_planes: bool = False
     plane_color: tuple = (0.6, 0.6, 0.6)
     shadow_map_size: int = 256
+    ambient_occlusion: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,6 +137,9 @@ def parse_render(t: Mapping[str, Any]) -> RenderConfig:
         plane_color=tuple(get_vec3(t, "plane_color", d.plane_color, where=w)),
         shadow_map_size=get_number(
             t, "shadow_map_size", d.shadow_map_size, where=w, lo=8, hi=4096, integer=True
+        ),
+        ambient_occlusion=get_number(
+            t, "ambient_occlusion", d.ambient_occlusion, where=w, lo=0, hi=256, integer=True
         ),
     )
 

@@ -7,7 +7,7 @@ import warnings
 
 # viewing, culling, rasterizer, analytic spheres
 # plain meshes (smooth vertex normals) and box bodies as triangles
-from diffcloth.render import boxes, frame, mesh
+from diffcloth.render import boxes, frame, mesh, sky
 from diffcloth.render.boxes import BoxPoses, box_triangles
 from diffcloth.render.camera import (
     Camera,
@@ -65,6 +65,7 @@ from diffcloth.render.raster import (
 from diffcloth.render.shade import MODES as SHADING_MODES
 from diffcloth.render.shade import ShadingBuffer, light_vertices
 from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility, sphere_visibility
+from diffcloth.render.sky import SkyMaps, frame_sky_maps, sky_maps, sky_visibility
 from diffcloth.render.spheres import raycast_spheres
 from diffcloth.render.textures import (
     CubeMap,

@@ -155,7 +155,8 @@ def sky_visibility(sky: SkyMaps | None, points, normals):
         vis = shadow_visibility(sky.shadows, points, normals, taps=SKY_TAPS)
     if sky.plane_normal is not None:
         cos = sky.directions @ sky.plane_normal.T  # (K, npl)
-        vis = vis * jnp.prod(_ramp(cos / sky.ramp + 1.0), axis=-1)
+        pv = jnp.prod(_ramp(cos / sky.ramp + 1.0), axis=-1)  # (K,)
+        vis = vis * jnp.reshape(pv, (1,) * (vis.ndim - 1) + pv.shape)
     return jnp.clip(safe_div(jnp.sum(w * vis, -1), jnp.sum(w, -1)), 0.0, 1.0)
 
 
