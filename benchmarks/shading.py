@@ -10,7 +10,9 @@ Timings after one warm-up (compile) call, block_until_ready, median of --repeats
 Shadow cases (--shadow-modes, default phong and minnaert; "none" skips them): the full render of
 the same scene plus a ground plane, with both lights casting shadows ("shadows": true) and
 without ("shadows": false), forward and value-and-gradient w.r.t. lights and appearance, plus
-the shadow-map build alone ("mode": "shadow_maps") at --shadow-map-size texels.
+the shadow-map build alone ("mode": "shadow_maps") at --shadow-map-size texels. With
+--ambient-occlusion K (default 32; 0 skips), each shadow mode also runs with shadows and K sky
+directions of occluded ambient light ("ambient_occlusion": K; maps of shadow-map-size // 2).
 
     python benchmarks/shading.py [--size 256] [--repeats 5] [--modes phong,second_pass]
 """
@@ -55,6 +57,7 @@ def main():
     parser.add_argument("--no-grad", action="store_true")
     parser.add_argument("--shadow-modes", default="phong,minnaert")
     parser.add_argument("--shadow-map-size", type=int, default=256)
+    parser.add_argument("--ambient-occlusion", type=int, default=32)
     args = parser.parse_args()
     surf = seed_surface()
     size = args.size
@@ -67,7 +70,7 @@ def main():
     spheres = make_sphere([(0.0, -0.3, 0.0), (0.55, 0.0, 0.35)], [0.3, 0.18], dtype=jnp.float32)
     weights = jnp.asarray(np.random.default_rng(0).uniform(size=(size, size, 4)), jnp.float32)
     device = jax.devices()[0].device_kind
-    for mode in [m for m in args.modes.split(",") if m != "none"]:
+    for mode in [m for m in args.modes.split(",") if m and m != "none"]:
         gb, _, eye = jax.jit(surface_gbuffer, static_argnames=("shading",))(
             surf, cam, lights, app, shading=mode
         )
@@ -132,10 +135,13 @@ def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
     row["device"] = device
     print(json.dumps(row), flush=True)
     for mode in modes:
-        for shadows in (False, True):
+        cases = [(False, 0), (True, 0)]
+        if args.ambient_occlusion:
+            cases.append((True, args.ambient_occlusion))
+        for shadows, ao in cases:
             lights = lights_with(shadows)
 
-            def render_fn(lights, app, mode=mode):
+            def render_fn(lights, app, mode=mode, ao=ao):
                 return render(
                     surf,
                     cam,
@@ -146,10 +152,11 @@ def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
                     textures=tex,
                     planes=ground,
                     shadow_map_size=map_size,
+                    ambient_occlusion=ao,
                 )
 
-            def render_loss(params, mode=mode):
-                return jnp.sum(weights * render_fn(*params, mode=mode))
+            def render_loss(params, mode=mode, ao=ao):
+                return jnp.sum(weights * render_fn(*params, mode=mode, ao=ao))
 
             row = {
                 "bench": "shading",
@@ -158,6 +165,7 @@ def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
                 "planes": 1,
                 "shadows": shadows,
                 "shadow_map_size": map_size,
+                "ambient_occlusion": ao,
             }
             row["render_fwd_ms"] = _timed_ms(jax.jit(render_fn), lights, app, repeats=args.repeats)
             if not args.no_grad:

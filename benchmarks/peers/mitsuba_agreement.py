@@ -13,15 +13,18 @@ reference (benchmarks/peers/warp_massspring.py). Each chosen frame's control net
   `direct` integrator (shadow rays), box filter, `--spp` samples;
 - diffcloth: `surface.tessellate` (level 8) + `collide_surface`, `render.render` in "phong" mode
   with zero specular (Lambert), ambient light = the environment's radiance, the floor drawn as a
-  plane, the sphere drawn, shadows on for the directional light (when this diffcloth has them).
+  plane, the sphere drawn, shadows on for the directional light (when this diffcloth has them),
+  and the ambient light occluded by the scene (`ambient_occlusion`, --ambient-occlusion sky
+  directions, default 32): the model of Mitsuba's constant environment blocked by the geometry.
 
 Same cameras (two), same light, same albedos. Figures per resolution, over frames and cameras:
   iou         cloth-mask IoU, the mask of each image by a cloth-colour test (chromaticity within
               0.1 of the cloth albedo's, `diffcloth.fit.cloth_mask_by_color`);
   rmse_cloth  RMSE over pixels that are cloth in both masks, linear RGB.
-Known, irreducible differences: diffcloth's ambient term is not occluded (Mitsuba's environment
-is, so creases and the cloth's underside are darker there), and diffcloth's shadows are a shadow
-map with soft (percentage-closer) edges where Mitsuba's directional light casts hard ones.
+Known differences: diffcloth's occluded ambient is estimated from K fixed directions with soft
+shadow maps (Mitsuba integrates the environment by Monte Carlo), its shadows are a shadow map with
+soft (percentage-closer) edges where Mitsuba's directional light casts hard ones, its floor is an
+infinite plane (Mitsuba's a 10 m square), and the reference carries Monte Carlo noise.
 """
 
 from __future__ import annotations
