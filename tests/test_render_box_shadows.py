@@ -198,6 +198,8 @@ def test_box_shadow_gradient_wrt_box_position_matches_fd(box_scene, classes):
     vg = jax.jit(jax.value_and_grad(loss))
     g = float(vg(0.0)[1])
     assert abs(g) > 1e-2, g
-    for h in (1e-5, 1e-6):
+    # measured: FD/AD - 1 = 1e-5 (h 3e-5), 1.9e-4 (1e-5: a step spanning a kink, e.g. a tap
+    # crossing a texel), -2.8e-6 (3e-6), -3.1e-7 (1e-6), -2.8e-9 (1e-7): converged to AD
+    for h, tol in ((1e-6, 3e-6), (1e-7, 1e-7)):
         fd = (float(vg(h)[0]) - float(vg(-h)[0])) / (2 * h)
-        assert abs(fd - g) <= 1e-4 * abs(g), (h, g, fd)
+        assert abs(fd - g) <= tol * abs(g), (h, g, fd)
