@@ -14,6 +14,7 @@ import pytest
 from diffcloth import config as cfg
 from diffcloth import pipeline, render, surface
 from diffcloth.render.camera import pixel_rays
+from diffcloth.render.shadows import shadow_visibility
 from diffcloth.scene import build_scene
 
 N = 40
@@ -117,6 +118,7 @@ def pixel_classes(sc):
             plane_in=plane_in, cloth_in=cloth_in, lit_plane=lit_plane, lit_cloth=lit_cloth
         ).items()
     }
+    out["points"] = {"plane": p_plane.reshape(N, N, 3), "cloth": p_cloth.reshape(N, N, 3)}
     return out
 
 
@@ -124,6 +126,8 @@ def pixel_classes(sc):
 def classes(box_scene):
     out = pixel_classes(box_scene[0])
     for k, v in out.items():
+        if k == "points":
+            continue
         assert v.sum() >= 4, (k, v.sum())  # the scene puts every class in view
     return out
 
@@ -155,11 +159,38 @@ def _analytic(sc, img, classes, *, lit_image=None):
             np.testing.assert_allclose(img[lit], lit_image[lit], atol=1e-9, err_msg=k)
 
 
+def test_box_shadow_visibility_at_the_receivers(box_scene, classes):
+    """The shadow data `render` builds for a frame with boxes (`frame_shadow_maps` with the box
+    mesh as occluder: cloth + box in one shadow map) gives visibility 0 at the plane and cloth
+    points in the box's analytic footprint and 1 away from every shadow. Cheap (no image)."""
+    sc, poses = box_scene
+    box_verts, _, box_faces = render.boxes.box_mesh(poses)
+    surf = surface.tessellate(sc.state.x, sc.level, sc.basis, flip=sc.flip)
+    pts, want = [], []
+    for k in ("plane", "cloth"):
+        for cls, v in ((k + "_in", 0.0), ("lit_" + k, 1.0)):
+            p = classes["points"][k][classes[cls]]
+            pts.append(p)
+            want.append(np.full(len(p), v))
+    pts = jnp.asarray(np.concatenate(pts))
+    up = jnp.broadcast_to(jnp.asarray([0.0, 1.0, 0.0]), pts.shape)
+
+    @jax.jit
+    def vis(surf, verts):
+        maps = render.frame_shadow_maps(
+            surf, sc.lights, occluders=(verts, box_faces), size=sc.shadow_map_size
+        )
+        return shadow_visibility(maps, pts, up)[:, 0]
+
+    np.testing.assert_allclose(np.asarray(vis(surf, box_verts)), np.concatenate(want), atol=1e-9)
+
+
+@pytest.mark.slow  # one render compile of the shadowed frame with a box (~20 s CPU)
 def test_box_casts_shadows_on_plane_and_cloth(box_scene, classes):
     """config -> Scene -> `render_frame` with the box: plane and cloth pixels in the box's
     footprint get only ambient light, pixels away from every shadow the full analytic light (so
     they equal the unshadowed image, which is the analytic lit value everywhere: checked in the
-    slow test below). One render compile."""
+    on/off test below)."""
     sc, poses = box_scene
     _analytic(sc, np.asarray(_render(sc, poses)), classes)
 
