@@ -1,6 +1,6 @@
 """LOD, [[deform]] waves and object culling reach `diffcloth render` (issue 14 acceptance 4):
 the CLI entry `main` on tiny configs (16 px, 5 x 5 net, 2 frames, a pinned cloth so frames differ
-only through the waves)."""
+only through the waves; no gravity, so the box body stays put)."""
 
 import numpy as np
 import pytest
@@ -21,11 +21,16 @@ pinned = "all"
 num_frames = 2
 integrator = "implicit"
 num_substeps = 1
+gravity = [0.0, 0.0, 0.0]
 
 [render]
 width = 16
 height = 16
 {render}
+
+[appearance]
+diffuse = [0.1, 0.2, 0.9]
+sphere_color = [0.9, 0.6, 0.1]
 
 [[cameras]]
 eye = [0.0, 1.4, 1.2]
@@ -42,8 +47,16 @@ amplitude = 0.08
 wavelength = 0.5
 speed = 6.0
 """
-# every option on: tessellation level from the projected size, culling, travelling waves
-ALL_ON = BASE.format(render='lod = "auto"\ncull = true') + WAVES
+BOX = """
+[[bodies]]
+shape = "box"
+mass = 1.0
+half_extents = [0.12, 0.12, 0.12]
+position = [0.25, 0.75, 0.1]
+"""
+# every option on: tessellation level from the projected size, culling, travelling waves (and
+# a box body, which the CLI video must draw)
+ALL_ON = BASE.format(render='lod = "auto"\ncull = true') + WAVES + BOX
 # every option off: fixed level 8, no culling, no deformation
 ALL_OFF = BASE.format(render="level = 8")
 
@@ -68,7 +81,7 @@ def test_lod_deform_and_cull_reach_the_cli(tmp_path, capsys):
     sc = scene.build_scene(cfg.load_config(tmp_path / "on.toml"))
     level = sc.level
     assert level == 2 and sc.cull and len(sc.deform) == 1
-    assert f"level {level} (lod auto), culling on, 1 deformations" in logs["on"]
+    assert f"level {level} (lod auto), culling on, 1 deformations, 1 rigid bodies" in logs["on"]
     assert "level 8 (lod fixed), culling off, 0 deformations" in logs["off"]
     n_on = surface.tessellate(sc.state.x, level, sc.basis).positions.shape[0]
     n_off = surface.tessellate(sc.state.x, 8, sc.basis).positions.shape[0]
@@ -79,6 +92,9 @@ def test_lod_deform_and_cull_reach_the_cli(tmp_path, capsys):
     assert np.abs(seen_off[1] - seen_off[0]).max() < 1e-6
     assert np.abs(seen_on[1] - seen_on[0]).max() > 0.02
     assert np.abs(seen_on[0] - seen_off[0]).max() > 0.02
+    # the box body is drawn in the CLI video: orange pixels (its sphere_color) on the blue cloth
+    orange = lambda v: (v[..., 0] > v[..., 2] + 0.2).sum()  # noqa: E731
+    assert orange(seen_on[0]) >= 4 and orange(seen_off[0]) == 0
     # cull: camera 1 looks away from the cloth; with culling its triangles are dropped and the
     # image is the background, exactly as without culling
     bg = np.asarray(sc.background, np.float32)
