@@ -61,7 +61,7 @@ ALL_ON = BASE.format(render='lod = "auto"\ncull = true') + WAVES + BOX
 ALL_OFF = BASE.format(render="level = 8")
 
 
-@pytest.mark.slow  # two CLI runs (two simulate + render compiles, ~1-2 min loaded)
+@pytest.mark.slow  # two CLI runs (simulate + render compiles, ~60 s CPU)
 def test_lod_deform_and_cull_reach_the_cli(tmp_path, capsys):
     from diffcloth.cli import main
 

@@ -195,7 +195,7 @@ def test_box_casts_shadows_on_plane_and_cloth(box_scene, classes):
     _analytic(sc, np.asarray(_render(sc, poses)), classes)
 
 
-@pytest.mark.slow  # compiles the coupled rollout twice (~1 min loaded)
+@pytest.mark.slow  # two simulate_and_render compiles (~40 s CPU)
 def test_simulate_and_render_box_shadows_on_vs_off(box_scene, classes):
     """Through `simulate_and_render` (first_frame = 0: the initial state): with shadows on, the
     box's footprint on the plane and the cloth is darker than with shadows off, and every pixel
@@ -208,7 +208,7 @@ def test_simulate_and_render_box_shadows_on_vs_off(box_scene, classes):
     _analytic(sc, on_img, classes, lit_image=off_img)
 
 
-@pytest.mark.slow  # a value-and-gradient compile of the shadowed render (~40 s loaded)
+@pytest.mark.slow  # a value-and-gradient compile of the shadowed render (~45 s CPU)
 def test_box_shadow_gradient_wrt_box_position_matches_fd(box_scene, classes):
     """d/d(box position) of a weighted image loss over the box's shadow edges on the plane and
     the cloth (penumbra: antialiased shadow-map coverage + bilinear PCF, so the edge moves
