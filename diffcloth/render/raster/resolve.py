@@ -30,17 +30,19 @@ def _resolve(s: _Setup, ids, camera: Camera, neighbors, walk: int, budget: int |
     total = e[0] + e[1] + e[2]
     ok = mask & (jax.lax.stop_gradient(total) > 0)
     inv = safe_div(jnp.ones((), dtype), jnp.where(ok, total, 1.0))
-    bary = jnp.stack([jnp.where(ok, ek * inv, 0.0) for ek in e], axis=-1)
+    # materialized before any use: every consumer (the silhouette pairs, interpolate per
+    # attribute and channel, antialias's shifted reads, compositing) would otherwise redo the
+    # per-pixel gathers and edge functions, e.g. once per output channel of the crossings
+    bary = materialize(jnp.stack([jnp.where(ok, ek * inv, 0.0) for ek in e], axis=-1))
     depth = bary[..., 0] * dv[..., 0] + bary[..., 1] * dv[..., 1] + bary[..., 2] * dv[..., 2]
-    depth = jnp.where(ok, depth, BACKGROUND_DEPTH)
+    depth = materialize(jnp.where(ok, depth, BACKGROUND_DEPTH))
+    ok = materialize(ok)
     cross = _crossings(s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk, budget)
-    # materialized: every consumer (interpolate per attribute and channel, antialias's shifted
-    # reads, compositing) would otherwise redo the per-pixel gathers and edge functions
     return Fragments(
         triangle_id=materialize(jnp.where(ok, ids, -1).astype(jnp.int32)),
-        barycentric=materialize(bary),
-        depth=materialize(depth),
-        crossings=cross.astype(dtype),
+        barycentric=bary,
+        depth=depth,
+        crossings=materialize(cross.astype(dtype)),
         front_facing=materialize(ok & s.front[tri]),
     )
 
