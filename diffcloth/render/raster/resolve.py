@@ -78,8 +78,9 @@ def rasterize(
         (walk 1-2 missed most of the drape's contour crossings at 128 x 128, walk 8 finds them).
       silhouette_budget: static size of the compacted list of pixel pairs searched for
         silhouettes (default `default_silhouette_budget`: H W / 16 from 128 x 128 up); when a
-        frame needs more, a full-image search runs instead (same result, slower; under vmap
-        both run). >= 2 H W: always the full-image search (compiles once, not twice).
+        frame needs more, a list of 4 x the budget, then a full-image search runs instead (same
+        result, slower; under vmap all run). >= 2 H W: always the full-image search (compiles
+        once, not three times).
     Returns:
       Fragments.
     """
