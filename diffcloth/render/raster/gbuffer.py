@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize, safe_normalize
+from diffcloth._math import materialize, materialize_grad, safe_normalize
 from diffcloth.render.camera import Camera
 from diffcloth.render.coverage import edge_coverage
 from diffcloth.render.mesh import vertex_normals
@@ -37,8 +37,10 @@ def antialias(color, buffer):
         # exact coverage by the straight edge of slope k (edge_coverage; k = 0 gives nvdiffrast's
         # 1/2 - t on the front pixel when t < 1/2, else t - 1/2 on the back one)
         a_front = da < db
-        t = jnp.where(a_front, ta, tb)
-        k = jnp.where(a_front, ka, kb)
+        # the backward pass of the coverage is computed once per pair, not inside each of the 8
+        # crossing channels it flows into (forward + backward 256^2 phong: 0.8x)
+        t = materialize_grad(jnp.where(a_front, ta, tb))
+        k = materialize_grad(jnp.where(a_front, ka, kb))
         ok = (ia != ib) & (jax.lax.stop_gradient(t) >= 0)
         wf = jnp.where(ok, 1.0 - edge_coverage(t, k), 0.0)
         wb = jnp.where(ok, edge_coverage(t - 1.0, k), 0.0)
