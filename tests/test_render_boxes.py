@@ -113,7 +113,12 @@ BOX_SCENE = {
     "render": {"width": 32, "height": 32, "level": 2},
     "camera": {"eye": [0.0, 0.8, 2.2], "target": [0.0, 0.4, 0.0]},
     "bodies": [
-        {"shape": "box", "half_extents": [0.15, 0.15, 0.15], "position": [0.0, 0.3, 0.6]},
+        {
+            "shape": "box",
+            "half_extents": [0.15, 0.15, 0.15],
+            "position": [0.0, 0.3, 0.6],
+            "mass": 1.0,
+        },
     ],
     "appearance": {"sphere_color": [0.9, 0.6, 0.1]},
 }

@@ -1,6 +1,8 @@
 """diffcloth.fit: image losses, parameter constraints, the optax loop, identifiability.
 
-The scene-level `fit(scene, targets, free=[...])` is built on these by the pipeline.
+The scene-level `fit(scene, targets, free=[...])` is built on these by the pipeline. Engines:
+`fit_params` (optax), `fit_lm` (Levenberg-Marquardt on residuals), `fit_staged` (staged LM with
+free subsets and scans).
 """
 
 from diffcloth.fit.constraints import (
@@ -24,6 +26,7 @@ from diffcloth.fit.footage import (
 )
 from diffcloth.fit.identifiability import Identifiability, format_identifiability, identifiability
 from diffcloth.fit.interrupt import catch_interrupts
+from diffcloth.fit.lm import fit_lm, fit_lm_multistart
 from diffcloth.fit.loop import (
     FitResult,
     History,
@@ -65,10 +68,16 @@ from diffcloth.fit.scene_fit import (
     video_loss,
 )
 from diffcloth.fit.settings import FitSettings
+from diffcloth.fit.staged import ParamStage, StagedResult, fit_staged
 from diffcloth.fit.ties import Ties, parse_ties
 
 __all__ = [
     "FitSettings",
+    "ParamStage",
+    "StagedResult",
+    "fit_lm",
+    "fit_lm_multistart",
+    "fit_staged",
     "Ties",
     "parse_ties",
     "FootageLoss",

@@ -4,7 +4,7 @@ nvdiffrast's analytic antialiasing blends each silhouette pixel pair by |t - 1/2
 crossing of the edge on the segment between the two centres. That is the exact box-filtered
 coverage only for an edge perpendicular to the pair: a slanted edge (slope k = |tan| of its angle
 to the pair's normal direction, 0 <= k <= 1 since every edge is handled by the pair direction it is
-most perpendicular to) leaves the nearer pixel fully covered and the farther one empty when t >
+most perpendicular to, `pair_share`) leaves the nearer pixel fully covered and the farther one empty when t >
 1/2 + (1 - k)/2 ... and over- or under-covers both otherwise (up to k / 8 of a pixel at 45 degrees).
 `edge_coverage` is the exact area of the unit pixel on the surface's side of the edge line; with it
 the blended pair has the same coverage as a box-filtered (path-traced) pixel, so cloth masks cut by
@@ -16,7 +16,11 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-__all__ = ["edge_coverage"]
+__all__ = ["PAIR_BAND", "edge_coverage", "pair_share"]
+
+#: width, in u = along / (along + across), of the band around 45 degrees in which an edge's
+#: antialiasing moves smoothly from one pair direction to the other (`pair_share`).
+PAIR_BAND = 0.1
 
 
 def edge_coverage(sigma, k):
@@ -42,3 +46,25 @@ def edge_coverage(sigma, k):
     a = jnp.where(sigma > lin, hi, jnp.where(sigma < -lin, lo, mid))
     a = jnp.where(k > 1e-6, a, jnp.clip(mid, 0.0, 1.0))
     return jnp.clip(a, 0.0, 1.0)
+
+
+def pair_share(along, across):
+    """Share of an edge's antialiasing given to one pair direction (horizontal or vertical).
+
+    nvdiffrast hands each edge to the pair direction it is most perpendicular to. That hard switch
+    at 45 degrees hands a pixel's blend to a different neighbour pair as the edge turns through 45
+    degrees: a jump in the image (seen as a jump in the main job's loss; tests/test_fit_smooth.py).
+    Here the share moves smoothly (a smoothstep over `PAIR_BAND` in u = along / (along + across))
+    from the other direction to this one, and the two directions' shares sum to 1.
+
+    Args:
+      along: (...) |component| of the edge's screen normal along this pair direction; differentiable.
+      across: (...) |component| along the other direction; differentiable.
+    Returns:
+      (...) share in [0, 1]: 1 for an edge within about 39 degrees of perpendicular to the pair,
+      0 within about 39 degrees of parallel, 1/2 at 45 degrees; share(a, b) + share(b, a) = 1.
+    """
+    total = along + across
+    u = along / jnp.where(total > 0, total, 1.0)
+    x = jnp.clip((u - 0.5) / PAIR_BAND + 0.5, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 
 from diffcloth._math import safe_div, safe_normalize, safe_sqrt
 from diffcloth.render.camera import Camera, pixel_rays
+from diffcloth.render.coverage import pair_share
 from diffcloth.render.raster import BACKGROUND_DEPTH, GBuffer
 from diffcloth.render.rays import ray_sphere
 from diffcloth.shapes import Sphere
@@ -72,17 +73,18 @@ def raycast_spheres(spheres: Sphere, camera: Camera, attributes: dict | None = N
 
 
 def _sphere_crossings(g, which, mask, depth, sid):
-    """(H, W, 8) crossings on the nearer pixel of each pair showing different surfaces, and
-    (zero) edge slopes, as `raster.Fragments`."""
+    """(H, W, 12) crossings on the nearer pixel of each pair showing different surfaces, (zero)
+    edge slopes and the pair directions' shares, as `raster.Fragments`."""
     gs = jnp.take_along_axis(g, which[None], axis=0)[0]  # own sphere at own pixel
-    # gradient direction of the own sphere's g: a rim point is handled by the pair direction it
-    # is most perpendicular to (as nvdiffrast does for edges)
-    gp = jnp.pad(jax.lax.stop_gradient(g), ((0, 0), (1, 1), (1, 1)), mode="edge")
+    # gradient direction of the own sphere's g: a rim point is shared between the two pair
+    # directions by how perpendicular it is to each (coverage.pair_share; as the triangle edges)
+    gp = jnp.pad(g, ((0, 0), (1, 1), (1, 1)), mode="edge")
     own = lambda x: jnp.take_along_axis(x, which[None], axis=0)[0]
     gx = jnp.abs(own(gp[:, 1:-1, 2:] - gp[:, 1:-1, :-2]))
     gy = jnp.abs(own(gp[:, 2:, 1:-1] - gp[:, :-2, 1:-1]))
-    prefer = {1: gx >= gy, 0: gy > gx}
-    out = []
+    share = {1: pair_share(gx, gy), 0: pair_share(gy, gx)}
+    prefer = {a: jax.lax.stop_gradient(v) > 0 for a, v in share.items()}
+    out, shares = [], []
     for axis in (1, 0):
         n = g.shape[axis + 1]
         lo = [slice(None)] * 2
@@ -111,5 +113,8 @@ def _sphere_crossings(g, which, mask, depth, sid):
         pad_lo[axis], pad_hi[axis] = (0, 1), (1, 0)
         out.append(jnp.pad(t_a, pad_lo, constant_values=-1.0))
         out.append(jnp.pad(t_b, pad_hi, constant_values=-1.0))
-    # slopes 0 (rim taken perpendicular to the pair, as nvdiffrast): the rasterizer's (8,) layout
-    return jnp.concatenate([jnp.stack(out, axis=-1), jnp.zeros(g.shape[1:] + (4,), g.dtype)], -1)
+        shares.append(jnp.pad(jnp.where(ok_a, share[axis][lo], 0.0), pad_lo))
+        shares.append(jnp.pad(jnp.where(ok_b, share[axis][hi], 0.0), pad_hi))
+    # slopes 0 (rim taken perpendicular to the pair, as nvdiffrast): the rasterizer's (12,) layout
+    zeros = jnp.zeros(g.shape[1:] + (4,), g.dtype)
+    return jnp.concatenate([jnp.stack(out, axis=-1), zeros, jnp.stack(shares, axis=-1)], -1)

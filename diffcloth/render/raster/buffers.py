@@ -18,10 +18,11 @@ class Fragments(NamedTuple):
     barycentric: perspective-correct barycentrics (3,), zeros on background; differentiable in
       the vertex positions.
     depth: view depth (-z_view) in m, BACKGROUND_DEPTH on background; differentiable.
-    crossings: (8,) fraction of the way to the (+x, -x, +y, -y) neighbour's centre where the
+    crossings: (12,) fraction of the way to the (+x, -x, +y, -y) neighbour's centre where the
       visible triangle's silhouette edge is crossed, -1 where there is none; then that edge's
-      slope k in [0, 1] relative to the pair direction (0: perpendicular; `edge_coverage`);
-      differentiable. (A (4,) array without the slopes is read as k = 0.)
+      slope k in [0, 1] relative to the pair direction (0: perpendicular; `edge_coverage`); then
+      this pair direction's share of the edge's blend (`coverage.pair_share`); differentiable.
+      (A (4,) array without the slopes is read as k = 0, an (8,) one as share 1.)
     front_facing: bool, True where the visible triangle is counter-clockwise on screen.
     """
 
@@ -39,8 +40,8 @@ class GBuffer(NamedTuple):
     depth: view depth in m, BACKGROUND_DEPTH on background.
     mask: bool coverage.
     surface_id: int32 id of the visible element (unique across composited objects), -1 background.
-    crossings: (8,) silhouette crossings toward (+x, -x, +y, -y) neighbours and the edges'
-      slopes (see Fragments).
+    crossings: (12,) silhouette crossings toward (+x, -x, +y, -y) neighbours, the edges'
+      slopes and the pair directions' shares (see Fragments).
     front_facing: bool, True where the visible side faces the camera.
     """
 

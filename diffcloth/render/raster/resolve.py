@@ -92,7 +92,9 @@ def rasterize(
             triangle_id=jnp.full((H, W), -1, jnp.int32),
             barycentric=jnp.zeros((H, W, 3), dtype),
             depth=jnp.full((H, W), BACKGROUND_DEPTH, dtype),
-            crossings=jnp.full((H, W, 4), -1.0, dtype),
+            crossings=jnp.concatenate(
+                [jnp.full((H, W, 4), -1.0, dtype), jnp.zeros((H, W, 8), dtype)], axis=-1
+            ),
             front_facing=jnp.zeros((H, W), bool),
         )
     if neighbors is None:

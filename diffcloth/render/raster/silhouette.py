@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from diffcloth._math import materialize, safe_div
+from diffcloth.render.coverage import pair_share
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH
 from diffcloth.render.raster.scan import _compact
 from diffcloth.render.raster.triangle_setup import _Setup
@@ -87,15 +88,16 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
     o = s.origin[sel // 3]
     ef = r[..., 0] * (sx - o[..., 0]) + r[..., 1] * (sy - o[..., 1]) + r[..., 2]
     slope = -(dx * r[..., 0] + dy * r[..., 1])
-    # as nvdiffrast: an edge is handled by the pair direction it is most perpendicular to
-    ar0, ar1 = jnp.abs(jax.lax.stop_gradient(r[..., 0])), jnp.abs(jax.lax.stop_gradient(r[..., 1]))
-    found = found & jnp.where(vertical, ar1 > ar0, ar0 >= ar1)
-    t = jnp.where(found, jnp.clip(safe_div(ef, jnp.where(found, slope, 1.0)), 0.0, 1.0), -1.0)
-    # the edge's slope relative to the pair direction (0: perpendicular), for `edge_coverage`
+    # the edge's normal along / across the pair direction: its slope k relative to the pair (0:
+    # perpendicular), for `edge_coverage`, and this direction's share of the edge (`pair_share`:
+    # near 45 degrees both directions blend, so the image does not jump as the edge turns)
     along, across = jnp.abs(r[..., 0]), jnp.abs(r[..., 1])
     along, across = jnp.where(vertical, across, along), jnp.where(vertical, along, across)
+    share = pair_share(along, across)
+    found = found & (jax.lax.stop_gradient(share) > 0)
+    t = jnp.where(found, jnp.clip(safe_div(ef, jnp.where(found, slope, 1.0)), 0.0, 1.0), -1.0)
     k = jnp.where(found, jnp.clip(safe_div(across, jnp.where(found, along, 1.0)), 0.0, 1.0), 0.0)
-    return t, k
+    return t, k, jnp.where(found, share, 0.0)
 
 
 def default_silhouette_budget(width: int, height: int) -> int:
@@ -145,9 +147,10 @@ def _pairs(s: _Setup, tri, ok, depth, neighbors, walk: int):
 
 
 def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: int | None):
-    """(H, W, 8): fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
+    """(H, W, 12): fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
     silhouette lies, set only on the nearer pixel of each neighbouring pair showing different
-    triangles (-1 elsewhere), then the slopes of those edges (0 elsewhere).
+    triangles (-1 elsewhere), then the slopes of those edges and the pair direction's share of
+    each (0 elsewhere).
 
     Walks from the front pixel's triangle across internal edges (up to `walk` further triangles)
     along the segment to the neighbour's centre and stops at the first silhouette edge. Only
@@ -184,21 +187,22 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
             py,
             walk,
         )
-        t, k = t
+        t, k, share = t
         at = jnp.where(act, idx, n)
         out = jnp.full((n,), -1.0, t.dtype).at[at].set(t, mode="drop")
         out_k = jnp.zeros((n,), k.dtype).at[at].set(k, mode="drop")
-        return out.reshape(2, H, W), out_k.reshape(2, H, W)
+        out_s = jnp.zeros((n,), share.dtype).at[at].set(share, mode="drop")
+        return out.reshape(2, H, W), out_k.reshape(2, H, W), out_s.reshape(2, H, W)
 
     # compacted lists of K and 4 K pairs (a frame whose silhouettes need more than K pairs,
     # e.g. walk 8 on a cloth seen at a grazing angle, stays far below the full search's cost)
     sizes = [b for b in (K, 4 * K) if b < n]
     if not sizes:
-        t, k = full(None)
+        t, k, share = full(None)
     else:
         level = jnp.sum(jnp.sum(active) > jnp.asarray(sizes))
         branches = [lambda _, b=b: compact(b) for b in sizes] + [full]
-        t, k = jax.lax.switch(level, branches, None)
+        t, k, share = jax.lax.switch(level, branches, None)
 
     def slots(v, none):
         v_a = jnp.where(a_front, v, none)  # stored on this pixel (+x / +y slot)
@@ -207,4 +211,4 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
         minus_y = jnp.pad(v_b[1, :-1], ((1, 0), (0, 0)), constant_values=none)
         return [v_a[0], minus_x, v_a[1], minus_y]
 
-    return jnp.stack(slots(t, -1.0) + slots(k, 0.0), axis=-1)
+    return jnp.stack(slots(t, -1.0) + slots(k, 0.0) + slots(share, 0.0), axis=-1)
