@@ -186,6 +186,22 @@ def _force_host_devices(n: int) -> None:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
 
 
+def _pad_frames(tree, sl, pad: int):
+    """Frames `sl` of (control nets, spheres, box poses, times) (None entries stay None; the
+    spheres' radius has no frame axis), the last frame repeated `pad` times."""
+    import jax
+    import numpy as np
+
+    def cut(a):
+        a = np.asarray(a)[sl]
+        return np.concatenate([a, np.repeat(a[-1:], pad, 0)]) if pad else a
+
+    xs, spheres, boxes, times = tree
+    sp = None if spheres is None else type(spheres)(cut(spheres.center), spheres.radius)
+    bx = None if boxes is None else jax.tree_util.tree_map(cut, boxes)
+    return cut(xs), sp, bx, None if times is None else cut(times)
+
+
 def _render(args) -> int:
     import jax
 
@@ -240,21 +256,18 @@ def _render(args) -> int:
         return 1
     print(f"  simulated in {time.perf_counter() - t0:.1f} s", flush=True)
     xs, spheres = pipeline.rendered_states(scene, traj, bodies)
+    # per-image box poses and [[deform]] times, as simulate_and_render draws them
+    boxes = pipeline.rendered_boxes(scene, bodies)
+    times = pipeline.rendered_times(scene) if scene.deform else None
     render_chunk = jax.jit(pipeline.render_frames)
     chunk = max(1, args.chunk)
     parts = []
     for a in range(0, xs.shape[0], chunk):
         sl = slice(a, min(a + chunk, xs.shape[0]))
-        sp = None if spheres is None else type(spheres)(spheres.center[sl], spheres.radius)
-        if xs[sl].shape[0] != chunk:  # pad the last chunk: one compiled shape
-            pad = chunk - xs[sl].shape[0]
-            x_part = np.concatenate([xs[sl], np.repeat(xs[sl][-1:], pad, 0)])
-            if sp is not None:
-                c = np.concatenate([sp.center, np.repeat(sp.center[-1:], pad, 0)])
-                sp = type(spheres)(c, sp.radius)
-            parts.append(np.asarray(render_chunk(scene, x_part, sp))[:, : chunk - pad])
-        else:
-            parts.append(np.asarray(render_chunk(scene, xs[sl], sp)))
+        pad = chunk - xs[sl].shape[0]  # pad the last chunk: one compiled shape
+        x_part, sp, bx, t = _pad_frames((xs, spheres, boxes, times), sl, pad)
+        video_part = render_chunk(scene, x_part, sp, boxes=bx, times=t)
+        parts.append(np.asarray(video_part)[:, : chunk - pad])
         done = min(a + chunk, xs.shape[0])
         print(f"  rendered {done:4d}/{xs.shape[0]}  {time.perf_counter() - t0:6.1f} s", flush=True)
     video = np.concatenate(parts, axis=1)  # (cams, T, H, W, 3) linear RGB

@@ -27,7 +27,7 @@ from diffcloth.io import linear_to_srgb, save_png, to_uint8
 from diffcloth.render import lights as Lm
 from diffcloth.render import textures as T
 from diffcloth.render.camera import make_camera
-from diffcloth.render.render import frame_shadow_maps, render
+from diffcloth.render.frame import frame_shadow_maps, render
 from diffcloth.render.shade import MODES
 from diffcloth.shapes import make_plane, make_sphere
 from diffcloth.surface import push_out_of_spheres, tessellate

@@ -29,9 +29,15 @@ def _poses(pos, angle=0.0, half=(0.15, 0.15, 0.15)):
     return BoxPoses(jnp.asarray([pos]), q[None], jnp.asarray([half]))
 
 
-render_jit = jax.jit(
-    lambda surf, boxes: render.render(surf, CAM, LIGHTS, "phong", APP, boxes=boxes)
+_render_jit = jax.jit(
+    lambda surf, boxes, app: render.render(surf, CAM, LIGHTS, "phong", app, boxes=boxes)
 )
+
+
+def render_jit(surf, boxes, app=APP):
+    """The shared render: one compile per boxes / no-boxes structure (the appearance is an
+    argument, so a second material reuses the compile)."""
+    return _render_jit(surf, boxes, app)
 
 
 def test_box_mesh_is_closed_outward_and_matches_the_body():
@@ -71,11 +77,7 @@ def test_box_occludes_the_cloth_and_is_occluded_by_it():
 def test_box_pixels_use_the_sphere_material():
     img = np.asarray(render_jit(_cloth(-0.3), _poses((0.0, 0.0, 0.0))))
     app2 = render.make_appearance(diffuse=(0.1, 0.2, 0.9), sphere_color=(0.45, 0.3, 0.05))
-    img2 = np.asarray(
-        jax.jit(lambda s, b: render.render(s, CAM, LIGHTS, "phong", app2, boxes=b))(
-            _cloth(-0.3), _poses((0.0, 0.0, 0.0))
-        )
-    )
+    img2 = np.asarray(render_jit(_cloth(-0.3), _poses((0.0, 0.0, 0.0)), app2))
     c = N // 2
     # halving sphere_color removes half of albedo * (ambient + diffuse) under white light: the
     # difference is proportional to sphere_color (specular unchanged); the cloth's diffuse unused

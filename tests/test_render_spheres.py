@@ -45,16 +45,23 @@ def _sphere_only(center, radius):
 
 
 sphere_only = jax.jit(_sphere_only)
-scene = jax.jit(_scene)
 area_grad = jax.jit(jax.grad(lambda c, r: jnp.sum(_sphere_only(c, r)[0]), argnums=(0, 1)))
-red_grad = jax.jit(
-    jax.grad(
-        lambda c, r, z: jnp.sum(
-            jnp.asarray([1.0, 0.0, -1.0, 0.0])[None, None] * _scene(c, r, z)[0]
-        ),
-        argnums=(0, 1),
-    )
-)
+
+
+def _red(c, r, z):
+    """(sum of red - blue, the composited image): the occlusion-edge loss and its image."""
+    img = _scene(c, r, z)[0]
+    return jnp.sum(jnp.asarray([1.0, 0.0, -1.0, 0.0])[None, None] * img), img
+
+
+# one compile serves the images, the loss and its gradient (a separate forward jit of _scene
+# was a second compile of the same rasterizer)
+red_value_and_grad = jax.jit(jax.value_and_grad(_red, argnums=(0, 1), has_aux=True))
+
+
+def scene(c, r, z):
+    """The composited image (H, W, 4) (through the shared compile)."""
+    return red_value_and_grad(c, r, z)[0][1]
 
 
 def test_silhouette_area_and_attributes():
@@ -102,17 +109,17 @@ def test_silhouette_gradients():
 
 def test_composite_by_depth_and_occlusion_gradient():
     center, radius = jnp.array([-9.0, 2.0, 0.0]), jnp.asarray(5.0)
-    img, g = scene(center, radius, -3.0)  # quad behind the sphere
+    img = scene(center, radius, -3.0)  # quad behind the sphere
     np.testing.assert_allclose(img[14, 7], [1, 0, 0, 1])  # sphere centre pixel
     np.testing.assert_allclose(img[25, 25], [0, 0, 1, 1])  # quad only
-    img2, _ = scene(center, radius, 6.0)  # quad in front hides the part of the sphere it covers
+    img2 = scene(center, radius, 6.0)  # quad in front hides the part of the sphere it covers
     np.testing.assert_allclose(img2[14, 7], [0, 0, 1, 1])
     assert float(img2[14, 2, 0]) > 0.9  # part of the sphere left of the quad (x < -10) still shows
     # occlusion edge: sphere over the quad, moving in x changes red vs blue coverage
-    gc, gr = red_grad(center, radius, -3.0)
+    (_, _), (gc, gr) = red_value_and_grad(center, radius, -3.0)
 
     def red(c):
-        im = scene(c, radius, -3.0)[0]
+        im = scene(c, radius, -3.0)
         return float(jnp.sum(im[..., 0] - im[..., 2]))
 
     h = 0.05

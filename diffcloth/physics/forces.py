@@ -63,6 +63,12 @@ from diffcloth.physics.stencil_vjp import (
 )
 
 
+def hand_vjp(material) -> bool:
+    """True when `total_forces_fn` gives forces with the hand-written VJP (continuum Material,
+    outside `autodiff_forces`): their residuals are only (x, v), nothing to checkpoint."""
+    return not hasattr(material, "total_forces_planar") and _HAND_VJP[0]
+
+
 def total_forces_fn(net: Net, material: Material, gravity, wind):
     """A function (x, v) -> springs + bending + drag + gravity (3, R, C) on planar x, v.
 

@@ -82,9 +82,10 @@ def rollout(
     """Simulate `num_frames` frames; return the trajectory (frames, rows, cols, 3) for x and v.
 
     Frame k of the trajectory is the state after k + 1 steps (the initial state is not included).
-    Checkpointing: the substeps of a frame and the frames themselves are `jax.checkpoint`-ed, and
-    rollouts longer than NESTED_FRAMES frames are scanned in blocks of ceil(sqrt(frames)) frames,
-    each block checkpointed too. A gradient then keeps O(sqrt(frames) + substeps) states instead of
+    Checkpointing: the frames are `jax.checkpoint`-ed (a frame's substeps store their states while
+    that frame is differentiated), and rollouts longer than NESTED_FRAMES frames are scanned in
+    blocks of ceil(sqrt(frames)) frames, each block checkpointed too. A gradient then keeps
+    O(sqrt(frames) + substeps) states instead of
     one per substep (plus the returned trajectory itself; `advance` returns no trajectory, so its
     gradient memory grows sublinearly with the rollout length). See benchmarks/memory.py.
 

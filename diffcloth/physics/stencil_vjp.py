@@ -100,14 +100,20 @@ def _bend_stencil(xp, vp, kbh, kbv, kbhc, kbvc, R, C):
 
 
 def _stencil_primal(cfg, params, x, v):
-    """Springs + bending (+ drag when cfg says so) (3, R, C) from the stencil parameters."""
+    """Springs + bending (+ drag when cfg says so) (3, R, C) from the stencil parameters.
+
+    The cell drag is written per component (no stacked cross product): XLA then makes it one loop
+    ending in the division (materialised once) instead of four (0.65-0.7x forward time at 13 x 10,
+    0.95x gradient time at 128 x 128, same-process A/B).
+    """
     R, C, drag = cfg
     k, rest, ck, kbh, kbv, kbhc, kbvc, ac, bc, wf = params
     xp, vp = _padded(x), _padded(v)
+    fs = lambda a, di, dj: _fs(a, di, dj, R, C)
     coef = []
     for i, (a, b) in enumerate(_SETS):
-        d = _fs(xp, *b, R, C) - _fs(xp, *a, R, C)
-        dv = _fs(vp, *b, R, C) - _fs(vp, *a, R, C)
+        d = fs(xp, *b) - fs(xp, *a)
+        dv = fs(vp, *b) - fs(vp, *a)
         coef.append(_spring_coef(d, dv, rest[i], k[i], ck[i]))
     xn = _ns(xp, 0, 0, R, C)
     f = jnp.zeros_like(x)
@@ -115,12 +121,19 @@ def _stencil_primal(cfg, params, x, v):
         f = f + _ns(coef[s], *so, R, C, pad=1)[None] * (_ns(xp, *no, R, C) - xn)
     f = f + _bend_stencil(xp, vp, kbh, kbv, kbhc, kbvc, R, C)
     if drag:
-        an, u = _cell_frame(xp, vp, wf, R, C)
-        aa = _dot(an, an)
-        ok = aa > dtype_eps(an)
+        p = fs(xp, 1, 1) - fs(xp, 0, 0)
+        q = fs(xp, 0, 1) - fs(xp, 1, 0)
+        an = [0.5 * (p[1] * q[2] - p[2] * q[1]), 0.5 * (p[2] * q[0] - p[0] * q[2])]
+        an.append(0.5 * (p[0] * q[1] - p[1] * q[0]))
+        uc = fs(vp, 0, 0) + fs(vp, 0, 1) + fs(vp, 1, 0) + fs(vp, 1, 1)
+        u = [0.25 * uc[i] - wf[i] for i in range(3)]
+        aa = an[0] * an[0] + an[1] * an[1] + an[2] * an[2]
+        ok = aa > dtype_eps(aa)
         safe = jnp.where(ok, aa, 1.0)
-        num = (ac * aa)[None] * u + (bc * _dot(u, an))[None] * an
-        fc = jnp.where(ok[None], num, 0.0) / jnp.sqrt(safe)[None]
+        c1 = ac * aa
+        c2 = bc * (u[0] * an[0] + u[1] * an[1] + u[2] * an[2])
+        root = jnp.sqrt(safe)
+        fc = jnp.stack([jnp.where(ok, c1 * u[i] + c2 * an[i], 0.0) / root for i in range(3)])
         f = f + sum(_ns(fc, di, dj, R, C, pad=1) for di, dj in _CELLS)
     return f
 

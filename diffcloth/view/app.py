@@ -259,7 +259,7 @@ class Viewer:
                 tuple(f"camera {i}" for i in range(len(cams))),
                 initial_value="camera 0",
             )
-            self.image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="render")
+            self.image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="render (sRGB)")
             self.render_note = gui.add_markdown("choose a shading mode (first use compiles it)")
         self.shading.on_update(lambda _: self._render_request.set())
         self.render_cam.on_update(lambda _: self._render_request.set())
@@ -431,7 +431,8 @@ class Viewer:
             first = "" if mode in self._rendered else " (first use: includes the compile)"
             self._rendered.add(mode)
             self.render_note.content = (
-                f"{mode}, camera {cam}, frame {self.frame}: {ms:.0f} ms{first}"
+                f"{mode}, camera {cam}, frame {self.frame}: {ms:.0f} ms{first}; "
+                "linear render, shown sRGB-encoded"
             )
 
     # ---- lifetime -----------------------------------------------------------------------------
