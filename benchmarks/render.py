@@ -4,7 +4,8 @@ Visibility + interpolation of an RGB colour + silhouette antialiasing, forward a
 backward (gradient of an image loss w.r.t. vertex positions and colours), at 256 and 512.
 Prints one JSON line per case: bench, size, triangles, forward_ms, grad_ms (medians),
 forward_min_ms, grad_min_ms (minimums: the machine is shared), silhouette_pairs (pairs searched)
-and silhouette_budget (the compacted list size; above it the full-image search runs).
+and silhouette_budget (the first compacted list size; above it a list 4x as long, above that the
+full-image search runs).
 
     python benchmarks/render.py [--sizes 256 512] [--repeats 7]
 """

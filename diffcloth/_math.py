@@ -7,6 +7,7 @@ where it would be singular, so neither the value nor the gradient is ever NaN or
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 EPS = {jnp.dtype("float32"): 1e-12, jnp.dtype("float64"): 1e-30}
@@ -72,3 +73,22 @@ def materialize(x):
     Differentiable; costs one copy of x."""
     n = x.shape[0]
     return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)
+
+
+@jax.custom_vjp
+def materialize_grad(x):
+    """x itself; its cotangent is computed once into a buffer (`materialize` for the backward
+    pass): XLA's CPU fusion otherwise recomputes a cheap-looking backward chain inside every
+    consumer of the cotangent (e.g. per channel of a stacked per-pixel array)."""
+    return x
+
+
+def _materialize_grad_fwd(x):
+    return x, None
+
+
+def _materialize_grad_bwd(_, g):
+    return (materialize(g),)
+
+
+materialize_grad.defvjp(_materialize_grad_fwd, _materialize_grad_bwd)

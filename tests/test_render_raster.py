@@ -248,6 +248,23 @@ def test_compact_silhouette_search_matches_full_image_search():
 
 
 @pytest.mark.slow
+def test_second_silhouette_list_matches_full_image_search():
+    """A frame needing more pairs than the budget but at most 4 x that takes the second
+    compacted list: same image and gradients as the full search."""
+    cam = pixel_camera()
+    p, f, c = pad(*_occlusion_scene())
+    need = int(jax.jit(R.silhouette_pairs)(p, f, cam))
+    budget = need // 2
+    assert budget < need <= 4 * budget < 2 * SIZE * SIZE
+    weights = jnp.asarray(np.random.default_rng(5).uniform(size=(SIZE, SIZE, 4)))
+    v, (gp, gc) = _value_and_grad_budget(p, f, c, cam, weights, budget)
+    gp_full, gc_full = _grad(p, f, c, cam, weights)
+    np.testing.assert_allclose(float(v), float(jnp.sum(weights * _render(p, f, c, cam))), 1e-12)
+    np.testing.assert_allclose(gp, gp_full, atol=1e-12)
+    np.testing.assert_allclose(gc, gc_full, atol=1e-12)
+
+
+@pytest.mark.slow
 def test_silhouette_budget_overflow_falls_back_to_full_search():
     cam = pixel_camera()
     p, f, c = pad(*_occlusion_scene())

@@ -53,12 +53,14 @@ on the seed cloth). Pair weights are the exact box-filter coverage of a straight
 found slope (`coverage.edge_coverage`; nvdiffrast's |t - 1/2| is its perpendicular case).
 The silhouette search runs only on pairs whose front triangle has a silhouette
 edge within reach (1,616 of 131,072 pairs at 256 x 256, 4,249 of 524,288 at 512 x 512),
-compacted by a log-depth scan into a static list (`silhouette_budget`, H W / 16) with a
-full-image fallback under lax.cond. Per-triangle tables are materialized (a scatter) before
-per-pixel gathers: XLA's CPU fusion otherwise recomputes them for every pixel. A/B against the
-previous version, same process, CPU time per call (median / min, load ~14): 256 x 256 forward
-43 / 34 -> 20 / 18 ms, forward + backward 55 / 52 -> 36 / 33 ms; 512 x 512 forward
-241 / 195 -> 98 / 87 ms, forward + backward 317 / 260 -> 190 / 154 ms. Images identical.
+compacted by a log-depth scan into a static list (`silhouette_budget`, H W / 16), a second
+one of 4 x that size and a full-image fallback, chosen by lax.switch (the wavy cloth of
+benchmarks/render.py needs 6,139 pairs at 256 x 256 with walk 8: it ran the full search, now
+the second list: forward 0.31x, forward + backward 0.67x). Per-triangle tables are
+materialized (a scatter) before per-pixel gathers: XLA's CPU fusion otherwise recomputes them
+for every pixel. A/B against the previous version, same process, CPU time per call (median /
+min, load ~14): 256 x 256 forward 43 / 34 -> 20 / 18 ms, forward + backward 55 / 52 -> 36 / 33 ms;
+512 x 512 forward 241 / 195 -> 98 / 87 ms, forward + backward 317 / 260 -> 190 / 154 ms. Images identical.
 """
 
 # ruff: noqa: F401  (re-exports: every name stays importable from diffcloth.render.raster)

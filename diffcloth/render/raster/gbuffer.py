@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize, safe_normalize
+from diffcloth._math import materialize, materialize_grad, safe_normalize
 from diffcloth.render.camera import Camera
 from diffcloth.render.coverage import edge_coverage
 from diffcloth.render.mesh import vertex_normals
@@ -40,9 +40,11 @@ def antialias(color, buffer):
         # 1/2 - t on the front pixel when t < 1/2, else t - 1/2 on the back one); both scaled by
         # this pair direction's share of the edge (coverage.pair_share: 1 away from 45 degrees)
         a_front = da < db
-        t = jnp.where(a_front, ta, tb)
-        k = jnp.where(a_front, ka, kb)
-        share = jnp.where(a_front, sa, sb)
+        # the backward pass of the coverage is computed once per pair, not inside each of the
+        # crossing channels it flows into (forward + backward 256^2 phong: 0.87x)
+        t = materialize_grad(jnp.where(a_front, ta, tb))
+        k = materialize_grad(jnp.where(a_front, ka, kb))
+        share = materialize_grad(jnp.where(a_front, sa, sb))
         ok = (ia != ib) & (jax.lax.stop_gradient(t) >= 0)
         wf = jnp.where(ok, share * (1.0 - edge_coverage(t, k)), 0.0)
         wb = jnp.where(ok, share * edge_coverage(t - 1.0, k), 0.0)

@@ -30,17 +30,19 @@ def _resolve(s: _Setup, ids, camera: Camera, neighbors, walk: int, budget: int |
     total = e[0] + e[1] + e[2]
     ok = mask & (jax.lax.stop_gradient(total) > 0)
     inv = safe_div(jnp.ones((), dtype), jnp.where(ok, total, 1.0))
-    bary = jnp.stack([jnp.where(ok, ek * inv, 0.0) for ek in e], axis=-1)
+    # materialized before any use: every consumer (the silhouette pairs, interpolate per
+    # attribute and channel, antialias's shifted reads, compositing) would otherwise redo the
+    # per-pixel gathers and edge functions, e.g. once per output channel of the crossings
+    bary = materialize(jnp.stack([jnp.where(ok, ek * inv, 0.0) for ek in e], axis=-1))
     depth = bary[..., 0] * dv[..., 0] + bary[..., 1] * dv[..., 1] + bary[..., 2] * dv[..., 2]
-    depth = jnp.where(ok, depth, BACKGROUND_DEPTH)
+    depth = materialize(jnp.where(ok, depth, BACKGROUND_DEPTH))
+    ok = materialize(ok)
     cross = _crossings(s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk, budget)
-    # materialized: every consumer (interpolate per attribute and channel, antialias's shifted
-    # reads, compositing) would otherwise redo the per-pixel gathers and edge functions
     return Fragments(
         triangle_id=materialize(jnp.where(ok, ids, -1).astype(jnp.int32)),
-        barycentric=materialize(bary),
-        depth=materialize(depth),
-        crossings=cross.astype(dtype),
+        barycentric=bary,
+        depth=depth,
+        crossings=materialize(cross.astype(dtype)),
         front_facing=materialize(ok & s.front[tri]),
     )
 
@@ -76,8 +78,9 @@ def rasterize(
         (walk 1-2 missed most of the drape's contour crossings at 128 x 128, walk 8 finds them).
       silhouette_budget: static size of the compacted list of pixel pairs searched for
         silhouettes (default `default_silhouette_budget`: H W / 16 from 128 x 128 up); when a
-        frame needs more, a full-image search runs instead (same result, slower; under vmap
-        both run). >= 2 H W: always the full-image search (compiles once, not twice).
+        frame needs more, a list of 4 x the budget, then a full-image search runs instead (same
+        result, slower; under vmap all run). >= 2 H W: always the full-image search (compiles
+        once, not three times).
     Returns:
       Fragments.
     """

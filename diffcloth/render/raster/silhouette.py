@@ -101,9 +101,10 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
 
 
 def default_silhouette_budget(width: int, height: int) -> int:
-    """Default size of the compacted silhouette-pair list: H W / 16 (the seed cloth needs about
-    H W / 32 at 256 x 256 and H W / 50 at 512 x 512); below 128 x 128 pixels the full-image search
-    (budget 2 H W) is as cheap and compiles once instead of twice.
+    """Default size of the compacted silhouette-pair list: H W / 16 (with walk 8 the Mitsuba
+    benchmark drape needs H W / 21 at 256 x 256; the wavy cloth of benchmarks/render.py, H W / 11,
+    takes the second list of 4 x the budget); below 128 x 128 pixels the full-image search
+    (budget 2 H W) is as cheap and compiles once instead of three times.
 
     Shapes: none (Python ints).
     """
@@ -154,9 +155,9 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
     Walks from the front pixel's triangle across internal edges (up to `walk` further triangles)
     along the segment to the neighbour's centre and stops at the first silhouette edge. Only
     pairs whose front triangle has a silhouette edge within reach are searched; they are
-    compacted into a static list of `budget` pairs (a full-image search runs instead when more
-    pairs need it). The search has no gradient; the crossing of the edge found is recomputed
-    differentiably.
+    compacted into a static list of `budget` pairs, or of 4 `budget` pairs when more need it (a
+    full-image search runs beyond that). The search has no gradient; the crossing of the edge
+    found is recomputed differentiably.
     """
     H, W = tri.shape
     sil, nbr, start, active, a_front = _pairs(s, tri, ok, depth, neighbors, walk)
@@ -168,7 +169,7 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
     n = 2 * H * W
     K = n if budget is None else min(int(budget), n)
 
-    def compact(_):
+    def compact(K):
         flat = active.reshape(-1)
         idx, act = _compact(flat, K)
         rem = idx % (H * W)
@@ -193,10 +194,15 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
         out_s = jnp.zeros((n,), share.dtype).at[at].set(share, mode="drop")
         return out.reshape(2, H, W), out_k.reshape(2, H, W), out_s.reshape(2, H, W)
 
-    if K >= n:
+    # compacted lists of K and 4 K pairs (a frame whose silhouettes need more than K pairs,
+    # e.g. walk 8 on a cloth seen at a grazing angle, stays far below the full search's cost)
+    sizes = [b for b in (K, 4 * K) if b < n]
+    if not sizes:
         t, k, share = full(None)
     else:
-        t, k, share = jax.lax.cond(jnp.sum(active) <= K, compact, full, None)
+        level = jnp.sum(jnp.sum(active) > jnp.asarray(sizes))
+        branches = [lambda _, b=b: compact(b) for b in sizes] + [full]
+        t, k, share = jax.lax.switch(level, branches, None)
 
     def slots(v, none):
         v_a = jnp.where(a_front, v, none)  # stored on this pixel (+x / +y slot)
