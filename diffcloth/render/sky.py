@@ -54,7 +54,10 @@ def sky_directions(k: int) -> np.ndarray:
 
 def sky_softness(k: int) -> float:
     """Angular radius in degrees of one direction's share of the sphere (a cap of area 4 pi / k),
-    clipped to the lights' softness range."""
+    clipped to the lights' softness range.
+
+    Shapes: none (a Python int in, a Python float out).
+    """
     lo, hi = SOFTNESS_RANGE
     return float(np.clip(math.degrees(math.acos(1.0 - 2.0 / k)), lo, hi))
 
