@@ -75,20 +75,17 @@ def materialize(x):
     return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)
 
 
-@jax.custom_vjp
+@jax.custom_jvp
 def materialize_grad(x):
-    """x itself; its cotangent is computed once into a buffer (`materialize` for the backward
-    pass): XLA's CPU fusion otherwise recomputes a cheap-looking backward chain inside every
-    consumer of the cotangent (e.g. per channel of a stacked per-pixel array)."""
+    """x itself; its tangent is computed once into a buffer (`materialize`), and so, transposed,
+    is its cotangent in the backward pass: XLA's CPU fusion otherwise recomputes a cheap-looking
+    backward chain inside every consumer of the cotangent (e.g. per channel of a stacked
+    per-pixel array). A custom JVP (not a custom VJP), so forward mode (jacfwd: the LM engine,
+    the identifiability analysis) works through it."""
     return x
 
 
-def _materialize_grad_fwd(x):
-    return x, None
-
-
-def _materialize_grad_bwd(_, g):
-    return (materialize(g),)
-
-
-materialize_grad.defvjp(_materialize_grad_fwd, _materialize_grad_bwd)
+@materialize_grad.defjvp
+def _materialize_grad_jvp(primals, tangents):
+    (x,), (t,) = primals, tangents
+    return x, materialize(t)

@@ -54,3 +54,16 @@ def test_float32_stays_float32():
     x = jnp.ones(3, jnp.float32)
     assert _math.safe_normalize(x).dtype == jnp.float32
     assert _math.safe_norm(x).dtype == jnp.float32
+
+
+def test_materialize_grad_is_identity_in_value_forward_and_reverse_mode():
+    """materialize_grad must not block forward mode: the LM engine takes jacfwd through the
+    renderer (a custom_vjp here broke every LM fit: 'can't apply forward-mode autodiff')."""
+    from diffcloth._math import materialize_grad
+
+    x = jnp.linspace(0.1, 1.0, 6).reshape(3, 2)
+    f = lambda v: jnp.sum(jnp.sin(materialize_grad(v * v)))
+    ref = lambda v: jnp.sum(jnp.sin(v * v))
+    np.testing.assert_allclose(f(x), ref(x), rtol=1e-6)
+    np.testing.assert_allclose(jax.grad(f)(x), jax.grad(ref)(x), rtol=1e-6)
+    np.testing.assert_allclose(jax.jacfwd(f)(x), jax.jacfwd(ref)(x), rtol=1e-6)
