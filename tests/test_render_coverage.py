@@ -142,3 +142,22 @@ def test_render_mesh_lights_smooth_vertex_normals():
     np.testing.assert_allclose(np.asarray(given), img, atol=1e-6)
     g = jax.grad(lambda v: jnp.sum(f(v)[..., 0]))(verts)
     assert np.isfinite(np.asarray(g)).all() and np.abs(np.asarray(g)).max() > 0
+
+
+def test_pair_share_sums_to_one_is_hard_outside_the_band_and_has_fd_gradient():
+    """The two pair directions' shares of an edge sum to 1, are 1 / 0 away from 45 degrees
+    (nvdiffrast's choice) and move smoothly inside the band (the image does not jump there)."""
+    from diffcloth.render.coverage import pair_share
+
+    ang = jnp.linspace(0.0, jnp.pi / 2, 181)
+    a, b = jnp.abs(jnp.cos(ang)), jnp.abs(jnp.sin(ang))
+    s_h, s_v = pair_share(a, b), pair_share(b, a)
+    np.testing.assert_allclose(s_h + s_v, 1.0, atol=1e-6)
+    u = a / (a + b)
+    assert bool(jnp.all(jnp.where(u >= 0.55, s_h == 1.0, True)))
+    assert bool(jnp.all(jnp.where(u <= 0.45, s_h == 0.0, True)))
+    assert float(jnp.max(jnp.abs(jnp.diff(s_h)))) < 0.1  # no jump between 0.5-degree steps
+    f = lambda t: pair_share(jnp.cos(t), jnp.sin(t))
+    t0, h = 0.8, 1e-3  # inside the band (45.8 degrees)
+    fd = (f(t0 + h) - f(t0 - h)) / (2 * h)
+    np.testing.assert_allclose(jax.grad(f)(t0), fd, rtol=1e-3)
