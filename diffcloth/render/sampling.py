@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import safe_atan2, safe_normalize, safe_sqrt
+from diffcloth._math import materialize, safe_atan2, safe_normalize, safe_sqrt
 
 WRAPS = ("repeat", "clamp")
 
@@ -41,8 +41,11 @@ def sample_2d(texture, uv, *, wrap="repeat"):
     1.5
     """
     wrap_u, wrap_v = _wraps(wrap)
-    h, w, _ = texture.shape
-    return _bilinear(lambda yi, xi: texture[yi, xi], h, w, uv, wrap_u, wrap_v)
+    h, w, c = texture.shape
+    quad = _quad_texels(texture, wrap_u, wrap_v)
+    return _bilinear_quad(
+        quad.reshape(h * w, 4 * c), lambda yi, xi: yi * w + xi, h, w, c, uv, wrap_u, wrap_v
+    )
 
 
 def _wraps(wrap):
@@ -72,6 +75,60 @@ def _bilinear(fetch, h, w, uv, wrap_u, wrap_v):
     ya, yb = _wrap_index(y0, h, wrap_v), _wrap_index(y0 + 1, h, wrap_v)
     top = fetch(ya, xa) * (1 - fx) + fetch(ya, xb) * fx
     bottom = fetch(yb, xa) * (1 - fx) + fetch(yb, xb) * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def _next_texels(t, axis, wrap):
+    """Each texel's successor along `axis` (wrapped round, or the edge texel repeated)."""
+    if wrap == "repeat":
+        return jnp.roll(t, -1, axis)
+    n = t.shape[axis]
+    last = jax.lax.slice_in_dim(t, n - 1, n, axis=axis)
+    return jnp.concatenate([jax.lax.slice_in_dim(t, 1, n, axis=axis), last], axis=axis)
+
+
+def _quad_texels(texture, wrap_u, wrap_v):
+    """(h, w, 4 c): each texel's c channels, then its right, lower and lower-right neighbours'
+    (wrapped as the lookup wraps), so one gather fetches a bilinear footprint."""
+    right = _next_texels(texture, 1, wrap_u)
+    down = _next_texels(texture, 0, wrap_v)
+    return jnp.concatenate([texture, right, down, _next_texels(right, 0, wrap_v)], axis=-1)
+
+
+def _wrap_start(i0f, n, wrap):
+    """Integer-valued float corner index i0f (...) -> int32 index wrapped into [0, n): for
+    "repeat" a float modulo (an int32 remainder is several times slower on the CPU; exact for
+    |i0f| < 2^24), for "clamp" a clip. n: int or int array (...)."""
+    if wrap == "clamp":
+        return jnp.clip(i0f, 0, n - 1).astype(jnp.int32)
+    if wrap != "repeat":
+        raise ValueError(f"wrap must be one of {WRAPS}, got {wrap!r}")
+    nf = jnp.asarray(n, i0f.dtype)
+    r = i0f - nf * jnp.floor(i0f / nf)
+    r = jnp.where(r >= nf, r - nf, jnp.where(r < 0, r + nf, r))
+    return r.astype(jnp.int32)
+
+
+def _bilinear_quad(table, index, h, w, c, uv, wrap_u, wrap_v):
+    """`_bilinear` with one gather per lookup: row index(row, col) of `table` (texels, 4 c) holds
+    the corner texel and its right, lower and lower-right neighbours (`_quad_texels`). Same
+    arithmetic, so the same values and gradients as four separate fetches. The row indices are
+    materialized: fused into the gather, they would be recomputed per channel."""
+    x = uv[..., 0] * w - 0.5
+    y = uv[..., 1] * h - 0.5
+    if wrap_u == "clamp":
+        x = jnp.clip(x, 0.0, w - 1.0)
+    if wrap_v == "clamp":
+        y = jnp.clip(y, 0.0, h - 1.0)
+    x0f = jax.lax.stop_gradient(jnp.floor(x))
+    y0f = jax.lax.stop_gradient(jnp.floor(y))
+    fx = (x - x0f)[..., None]
+    fy = (y - y0f)[..., None]
+    rows = index(_wrap_start(y0f, h, wrap_v), _wrap_start(x0f, w, wrap_u))
+    q = table[materialize(rows) if rows.ndim else rows]
+    c00, c01, c10, c11 = (q[..., k * c : (k + 1) * c] for k in range(4))
+    top = c00 * (1 - fx) + c01 * fx
+    bottom = c10 * (1 - fx) + c11 * fx
     return top * (1 - fy) + bottom * fy
 
 
@@ -112,7 +169,8 @@ def sample_mip(pyramid, uv, lod, *, wrap="repeat"):
     # table and each lookup carries its level's offset and size
     sizes = np.array([(t.shape[0], t.shape[1]) for t in pyramid], np.int32)
     offsets = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int32)
-    flat = jnp.concatenate([t.reshape(-1, c) for t in pyramid])
+    # each texel with its bilinear neighbours (one gather per level and lookup)
+    flat = jnp.concatenate([_quad_texels(t, wrap_u, wrap_v).reshape(-1, 4 * c) for t in pyramid])
     lod = jnp.clip(lod, 0.0, len(pyramid) - 1.0)
     lo = jax.lax.stop_gradient(jnp.floor(lod))
     frac = (lod - lo)[..., None]  # weight of the coarser level (differentiable in lod)
@@ -124,7 +182,7 @@ def sample_mip(pyramid, uv, lod, *, wrap="repeat"):
             jnp.asarray(sizes[:, 1])[k],
             jnp.asarray(offsets)[k],
         )
-        return _bilinear(lambda yi, xi: flat[off + yi * w + xi], h, w, uv, wrap_u, wrap_v)
+        return _bilinear_quad(flat, lambda yi, xi: off + yi * w + xi, h, w, c, uv, wrap_u, wrap_v)
 
     fine = level(lo)
     coarse = level(jnp.minimum(lo + 1, len(pyramid) - 1))
@@ -148,23 +206,23 @@ def uv_lod(uv, mask, texture_shape):
     scale = jnp.asarray([[[texture_shape[1], texture_shape[0]]]], uv.dtype)
     texel = uv * scale
 
-    def axis_footprint(axis):
+    def axis_footprint_sq(axis):
         d = jnp.diff(texel, axis=axis)  # (H-1, W, 2) or (H, W-1, 2)
         ok = jnp.logical_and(
             jax.lax.slice_in_dim(covered, 0, covered.shape[axis] - 1, axis=axis),
             jax.lax.slice_in_dim(covered, 1, covered.shape[axis], axis=axis),
         )
-        sq = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
-        good = ok & (sq > 0)
-        length = jnp.where(good, jnp.sqrt(jnp.where(good, sq, 1.0)), 0.0)
+        # computed once: fused into the four padded reads below, it would be recomputed per read
+        sq = materialize(jnp.where(ok, d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1], 0.0))
         pad_lo = [(0, 0), (0, 0)]
         pad_hi = [(0, 0), (0, 0)]
         pad_lo[axis] = (1, 0)
         pad_hi[axis] = (0, 1)
-        return jnp.maximum(jnp.pad(length, pad_lo), jnp.pad(length, pad_hi))
+        return jnp.maximum(jnp.pad(sq, pad_lo), jnp.pad(sq, pad_hi))
 
-    footprint = jnp.maximum(axis_footprint(0), axis_footprint(1))
-    return jnp.log2(jnp.maximum(footprint, 1.0))
+    # squared footprint: log2 of the length is half the log2 of its square (no square roots)
+    footprint_sq = jnp.maximum(axis_footprint_sq(0), axis_footprint_sq(1))
+    return 0.5 * jnp.log2(jnp.maximum(footprint_sq, 1.0))
 
 
 # ----------------------------------------------------------------------------- cube maps
