@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import materialize, safe_atan2, safe_normalize, safe_sqrt
+from diffcloth._math import dtype_eps, materialize, safe_atan2, safe_normalize, safe_sqrt
 
 WRAPS = ("repeat", "clamp")
 
@@ -291,6 +291,24 @@ def make_cube_map(faces) -> CubeMap:
     return CubeMap(jnp.asarray(padded, dtype or jnp.zeros(()).dtype))
 
 
+def _face_coords_jnp(d):
+    """`_face_coords` for unit jax directions (..., 3) with selects instead of per-pixel table
+    gathers and short reductions (the same values)."""
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    ax, ay, az = jnp.abs(x), jnp.abs(y), jnp.abs(z)
+    is_x = (ax >= ay) & (ax >= az)  # argmax: ties go to the first axis
+    is_y = ~is_x & (ay >= az)
+    neg = jnp.where(is_x, x < 0, jnp.where(is_y, y < 0, z < 0))
+    face = jnp.where(is_x, 0, jnp.where(is_y, 2, 4)) + neg.astype(jnp.int32)
+    # sc, tc, ma per face (OpenGL): +x (-z, -y, x), -x (z, -y, -x), +y (x, z, y), -y (x, -z, -y),
+    # +z (x, -y, z), -z (-x, -y, -z)
+    sc = jnp.where(is_x, jnp.where(neg, z, -z), jnp.where(is_y | ~neg, x, -x))
+    tc = jnp.where(is_y, jnp.where(neg, -z, z), -y)
+    ma = jnp.where(is_x, ax, jnp.where(is_y, ay, az))
+    ma = jnp.maximum(ma, 1e-6)
+    return face, 0.5 * (sc / ma + 1.0), 0.5 * (tc / ma + 1.0)
+
+
 def sample_cube(cube: CubeMap, directions):
     """Seamless bilinear cube-map lookup.
 
@@ -300,8 +318,8 @@ def sample_cube(cube: CubeMap, directions):
     Returns:
       (..., c) values; finite values and gradients for every direction, poles and zero included.
     """
-    d = safe_normalize(directions)
-    face, s, t = _face_coords(d)
+    d = _normalize3(directions)
+    face, s, t = _face_coords_jnp(d)
     size = cube.size
     x = jnp.clip(s * size + 0.5, 0.5, size + 0.5)  # padded texel coordinates, border included
     y = jnp.clip(t * size + 0.5, 0.5, size + 0.5)
@@ -311,10 +329,30 @@ def sample_cube(cube: CubeMap, directions):
     fy = (y - y0f)[..., None]
     x0 = x0f.astype(jnp.int32)
     y0 = y0f.astype(jnp.int32)
+    # each texel with its right, lower and lower-right neighbours: one gather per lookup, its
+    # rows computed once (fused into the gather they would be recomputed per channel)
     f = cube.faces
-    top = f[face, y0, x0] * (1 - fx) + f[face, y0, x0 + 1] * fx
-    bottom = f[face, y0 + 1, x0] * (1 - fx) + f[face, y0 + 1, x0 + 1] * fx
+    c, n = f.shape[-1], size + 1
+    quad = jnp.concatenate(
+        [f[:, :-1, :-1], f[:, :-1, 1:], f[:, 1:, :-1], f[:, 1:, 1:]], axis=-1
+    ).reshape(6 * n * n, 4 * c)
+    rows = (face * n + y0) * n + x0
+    q = quad[materialize(rows) if rows.ndim else rows]
+    c00, c01, c10, c11 = (q[..., k * c : (k + 1) * c] for k in range(4))
+    top = c00 * (1 - fx) + c01 * fx
+    bottom = c10 * (1 - fx) + c11 * fx
     return top * (1 - fy) + bottom * fy
+
+
+def _normalize3(v):
+    """`safe_normalize` over a last axis of 3 with the squared length written out (a short
+    reduction is a slow generic loop on XLA's CPU backend); zero falls back to +y."""
+    eps = dtype_eps(v)
+    sq = (v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])[..., None]
+    ok = sq > eps
+    n = jnp.sqrt(jnp.where(ok, sq, 1.0))
+    fallback = jnp.asarray([0.0, 1.0, 0.0], v.dtype)
+    return jnp.where(ok, jnp.where(ok, v, 1.0) / n, fallback)
 
 
 def sample_latlong(texture, directions):
