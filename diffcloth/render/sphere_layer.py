@@ -6,10 +6,11 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize, safe_norm, safe_normalize
+from diffcloth._math import materialize, safe_sqrt
 from diffcloth.render.camera import Camera, pixel_rays, project
 from diffcloth.render.lights import Appearance, Lights
-from diffcloth.render.rays import ray_sphere
+from diffcloth.render.rays import _dot3, ray_sphere
+from diffcloth.render.sampling import _normalize3
 from diffcloth.render.shade import blinn_phong
 from diffcloth.render.shadows import ShadowMaps, shadow_visibility
 from diffcloth.render.sky import SkyMaps, sky_visibility
@@ -19,8 +20,8 @@ from diffcloth.shapes import Sphere
 def _spacing(a):
     """(H, W) distance of a per-pixel point or direction (H, W, 3) to its right / lower
     neighbour's, the larger of the two (edge-padded)."""
-    sx = jnp.linalg.norm(jnp.diff(a, axis=1), axis=-1)
-    sy = jnp.linalg.norm(jnp.diff(a, axis=0), axis=-1)
+    dx, dy = jnp.diff(a, axis=1), jnp.diff(a, axis=0)
+    sx, sy = jnp.sqrt(_dot3(dx, dx)), jnp.sqrt(_dot3(dy, dy))
     return jnp.maximum(
         jnp.pad(sx, ((0, 0), (0, 1)), mode="edge"), jnp.pad(sy, ((0, 1), (0, 0)), mode="edge")
     )
@@ -54,18 +55,18 @@ def _sphere_layer(
     def one(center, radius):
         c = jnp.reshape(center, (1, 1, 3))
         t, hit, _ = ray_sphere(origins, dirs, c, radius)
-        t_close = -jnp.sum((origins - c) * dirs, axis=-1)
+        t_close = -_dot3(origins - c, dirs)
         closest = origins + t_close[..., None] * dirs
-        dist = safe_norm(closest - c, axis=-1)  # 0 with a finite gradient for a ray through c
+        dist = safe_sqrt(_dot3(closest - c, closest - c))  # 0, finite gradient, for a ray via c
         footprint = jnp.maximum(spacing_o + jnp.maximum(t_close, 0.0) * spacing_d, 1e-12)
         alpha = jnp.clip((radius - dist) / footprint + 0.5, 0.0, 1.0)
         alpha = jnp.where(t_close > 0, alpha, 0.0)
-        rim_point = c + radius * safe_normalize(closest - c)
+        rim_point = c + radius * _normalize3(closest - c)
         point = jnp.where(
             hit[..., None], origins + jnp.where(hit, t, 0.0)[..., None] * dirs, rim_point
         )
         _, depth = project(point, camera)
-        return alpha, jnp.where(alpha > 0, depth, big), point, safe_normalize(point - c)
+        return alpha, jnp.where(alpha > 0, depth, big), point, _normalize3(point - c)
 
     if sph.center.shape[0] == 1:  # one sphere: no nearest-of selection
         alpha, depth, point, normal = map(materialize, one(sph.center[0], sph.radius[0]))
