@@ -182,9 +182,16 @@ def tbn_frame(normal, tangent, bitangent):
     to +y directions; always finite."""
     n = _normalize(normal)
     t = _normalize(tangent - _dot(tangent, n)[..., None] * n)
-    b = jnp.cross(n, t)
+    b = _cross(n, t)
     side = jnp.where(_dot(bitangent, b) < 0, -1.0, 1.0)
     return t, side[..., None] * b, n
+
+
+def _cross(a, b):
+    """jnp.cross over a last axis of 3, written out (no stack / transpose of the components)."""
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
 
 
 def bump_normal(normal, tangent, bitangent, slopes, strength):
@@ -226,14 +233,18 @@ def trace_spheres(origins, directions, spheres: Sphere, lights: Lights, appearan
         rim = jnp.clip(safe_div(disc, radius * radius), 0.0, 1.0)
         return t, hit, rim
 
-    t, hit, rim = jax.vmap(one)(sph.center, sph.radius)  # (ns, ...)
-    big = jnp.asarray(1e10, t.dtype)
-    nearest = jnp.argmin(jnp.where(hit, t, big), axis=0)
-    t = jnp.take_along_axis(t, nearest[None], axis=0)[0]
-    rim = jnp.take_along_axis(rim, nearest[None], axis=0)[0]
-    any_hit = jnp.take_along_axis(hit, nearest[None], axis=0)[0]
+    if sph.center.shape[0] == 1:  # one sphere: no nearest-of selection (no per-pixel gathers)
+        t, any_hit, rim = one(sph.center[0], sph.radius[0])
+        center = _bc(sph.center[0], origins)
+    else:
+        t, hit, rim = jax.vmap(one)(sph.center, sph.radius)  # (ns, ...)
+        big = jnp.asarray(1e10, t.dtype)
+        nearest = jnp.argmin(jnp.where(hit, t, big), axis=0)
+        t = jnp.take_along_axis(t, nearest[None], axis=0)[0]
+        rim = jnp.take_along_axis(rim, nearest[None], axis=0)[0]
+        any_hit = jnp.take_along_axis(hit, nearest[None], axis=0)[0]
+        center = sph.center[nearest]
     t = jnp.where(any_hit, t, 0.0)
-    center = sph.center[nearest]
     point = origins + t[..., None] * directions
     n = _normalize(point - center)
     l, rad = light_vectors(lights, point)
