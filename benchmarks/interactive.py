@@ -10,6 +10,9 @@ One JSON line per shading mode (schema: benchmarks/_timing.py):
   bench "interactive", mode, size, vertices,
   frame_ms (the whole frame as one jitted function, median), fps (1000 / frame_ms),
   physics_ms, tessellate_ms, collide_ms, render_ms (each stage jitted alone, median),
+  raster_ms (`surface_gbuffer`: rasterize + interpolate the G-buffer), shade_ms (`shade` of that
+  G-buffer alone); render_ms - raster_ms - shade_ms is the rest (antialias, sphere layer,
+  background compositing),
   aim_fps (60 for phong, 30 for the others), meets_aim.
 
     python benchmarks/interactive.py [--size 256] [--repeats 15] [--modes phong,flat]
@@ -27,7 +30,8 @@ from _timing import emit, meta, timed
 
 from diffcloth import physics, render, surface
 from diffcloth.render import textures as T
-from diffcloth.render.shade import MODES
+from diffcloth.render.frame import surface_gbuffer
+from diffcloth.render.shade import MODES, shade
 from diffcloth.scene import load_scene
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -101,6 +105,26 @@ def main():
 
         t_frame = timed(jax.jit(frame), state, repeats=r)
         t_draw = timed(jax.jit(draw, static_argnums=1), surf, mode, repeats=r)
+        gbuf = jax.jit(
+            lambda s, mode=mode: surface_gbuffer(
+                s, cam, scene.lights, scene.appearance, shading=mode
+            )
+        )
+        gb, _, eye = gbuf(surf)
+        t_raster = timed(gbuf, surf, repeats=r)
+
+        def shade_only(gb, eye, mode=mode):
+            return shade(
+                gb,
+                eye,
+                scene.lights,
+                scene.appearance,
+                mode=mode,
+                textures=textures,
+                spheres=scene.spheres,
+            )
+
+        t_shade = timed(jax.jit(shade_only), gb, eye, repeats=r)
         aim = 60 if mode == "phong" else 30
         fps = 1.0 / t_frame.median
         emit(
@@ -116,6 +140,8 @@ def main():
                 tessellate_ms=t_tess.median_ms,
                 collide_ms=t_coll.median_ms,
                 render_ms=t_draw.median_ms,
+                raster_ms=t_raster.median_ms,
+                shade_ms=t_shade.median_ms,
                 aim_fps=aim,
                 meets_aim=bool(fps >= aim),
             ),
