@@ -66,7 +66,8 @@ def prepare_frame(
         Every mode of `shade.MODES` except "gouraud" (its per-vertex lighting depends on the
         lights: use `render`).
     Returns:
-      PreparedFrame; pass it to `render_prepared` (inside or outside jit).
+      PreparedFrame of (H, W, ...) arrays (surface positions (n, 3) m); pass it to
+      `render_prepared` (inside or outside jit).
     """
     from diffcloth.render.frame import surface_gbuffer
 
