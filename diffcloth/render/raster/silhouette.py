@@ -163,8 +163,15 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
     sil, nbr, start, active, a_front = _pairs(s, tri, ok, depth, neighbors, walk)
     vertical = jnp.arange(2)[:, None, None] == 1
 
-    def full(_):
+    # rematerialized in the backward (jax.checkpoint): differentiated inside lax.switch, every
+    # branch returns the union of all branches' residuals, so the compact branches (the ones
+    # taken) zero-filled the full search's (2, H, W) residuals on every call
+    @jax.checkpoint
+    def full_search(s, start, active, a_front):
         return _search(s, sil, nbr, start, active, a_front, vertical, X[None], Y[None], walk)
+
+    def full(_):
+        return full_search(s, start, active, a_front)
 
     n = 2 * H * W
     K = n if budget is None else min(int(budget), n)
