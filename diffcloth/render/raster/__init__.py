@@ -77,10 +77,12 @@ from diffcloth.render.raster.scan import _compact, _cummax, _cumsum
 from diffcloth.render.raster.silhouette import (
     _STEPS,
     _crossings,
+    _edge_crossing,
     _pairs,
     _reach,
     _search,
     _silhouette,
+    _walk,
     default_silhouette_budget,
 )
 from diffcloth.render.raster.topology import _edge_neighbors_jnp, edge_neighbors
