@@ -42,6 +42,9 @@ class H(logging.Handler):
 logging.getLogger("jax").addHandler(H())
 jax.config.update("jax_log_compiles", True)
 from diffcloth.cli import main
+ALL = sys.argv[1] == "--programs"
+if ALL:
+    sys.argv.pop(1)
 t = time.perf_counter()
 rc = main(sys.argv[1:])
 wall = time.perf_counter() - t
@@ -52,7 +55,8 @@ print("RESULT " + json.dumps(dict(
     backend_compile_s=g("/jax/core/compile/backend_compile_duration"),
     programs=cnt["/jax/core/compile/backend_compile_duration"],
     cache_saved_s=g("/jax/compilation_cache/compile_time_saved_sec"),
-    top_programs=[[n, round(s, 2)] for n, s in sorted(progs, key=lambda p: -p[1])[:3]])))
+    top_programs=[[n, round(s, 2)] for n, s in sorted(progs, key=lambda p: -p[1])[:3]],
+    **({"all_programs": [[n, round(s, 3)] for n, s in progs]} if ALL else {}))))
 """
 
 
@@ -60,11 +64,16 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default=str(ROOT / "configs" / "drape_fit.toml"))
     parser.add_argument("--steps", type=int, default=None, help="override [fit] steps")
+    parser.add_argument(
+        "--programs", action="store_true", help="add every compiled program (name, seconds)"
+    )
+    parser.add_argument("--cold-only", action="store_true", help="skip the warm run")
     args = parser.parse_args()
     emit(meta("compile"))
     with tempfile.TemporaryDirectory() as tmp:
-        for run in ("cold", "warm"):
-            cmd = [sys.executable, "-c", _CHILD, "fit", args.config, "--out", f"{tmp}/{run}"]
+        for run in ("cold",) if args.cold_only else ("cold", "warm"):
+            cmd = [sys.executable, "-c", _CHILD] + (["--programs"] if args.programs else [])
+            cmd += ["fit", args.config, "--out", f"{tmp}/{run}"]
             cmd += ["--cache", f"{tmp}/cache"]
             if args.steps is not None:
                 cmd += ["--steps", str(args.steps)]
