@@ -6,9 +6,12 @@ One JSON line per run (schema: benchmarks/_timing.py):
   trace_s, lower_s, backend_compile_s (summed jax.monitoring durations: jaxpr tracing, MLIR
   lowering, XLA compilation incl. cache loads), programs (XLA compilations requested),
   cache_saved_s (compile time the persistent cache reported as saved),
-  top_programs (the three slowest compilations, name and seconds, from jax_log_compiles).
+  top_programs (the three slowest compilations, name and seconds, from jax_log_compiles),
+  all_programs (with --programs: every compilation in order), fit (status, LM iterations and
+  each parameter's relative error from result.json: the speed-ups must not change the fit).
 
-    python benchmarks/compile.py [--config configs/drape_fit.toml] [--steps N]
+    python benchmarks/compile.py [--config configs/drape_fit.toml] [--steps N] [--programs]
+                                 [--cold-only]
 """
 
 from __future__ import annotations
@@ -81,7 +84,13 @@ def main():
             lines = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")]
             if not lines:
                 sys.exit(f"compile benchmark: the {run} run failed:\n{out.stderr[-2000:]}")
-            emit(dict(bench="compile", run=run, **json.loads(lines[-1][7:])))
+            row = json.loads(lines[-1][7:])
+            res = json.loads(Path(f"{tmp}/{run}/result.json").read_text())
+            row["fit"] = {"status": res["status"], "iterations": res["iterations"]}
+            row["fit"].update(
+                {f"{k}_rel_err": v.get("relative_error") for k, v in res["params"].items()}
+            )
+            emit(dict(bench="compile", run=run, **row))
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ plane = "xz"
 [sim]
 dt = 0.0333333333333
 num_frames = 3
-num_substeps = 4
+num_substeps = 16
 
 [[spheres]]
 center = [0.0, 0.5, 0.0]
