@@ -2,7 +2,7 @@
 subprocess with an empty persistent compilation cache (cold), then again with that cache (warm).
 
 One JSON line per run (schema: benchmarks/_timing.py):
-  bench "compile", run ("cold" | "warm"), wall_s (the whole CLI call),
+  bench "compile", run ("cold" | "warm"), commit (git HEAD), wall_s (the whole CLI call),
   trace_s, lower_s, backend_compile_s (summed jax.monitoring durations: jaxpr tracing, MLIR
   lowering, XLA compilation incl. cache loads), programs (XLA compilations requested),
   cache_saved_s (compile time the persistent cache reported as saved),
@@ -72,6 +72,8 @@ def main():
     )
     parser.add_argument("--cold-only", action="store_true", help="skip the warm run")
     args = parser.parse_args()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True, cwd=ROOT, check=False).stdout.strip() or None  # fmt: skip
     emit(meta("compile"))
     with tempfile.TemporaryDirectory() as tmp:
         for run in ("cold",) if args.cold_only else ("cold", "warm"):
@@ -90,7 +92,7 @@ def main():
             row["fit"].update(
                 {f"{k}_rel_err": v.get("relative_error") for k, v in res["params"].items()}
             )
-            emit(dict(bench="compile", run=run, **row))
+            emit(dict(bench="compile", run=run, commit=commit, **row))
 
 
 if __name__ == "__main__":
