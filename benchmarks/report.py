@@ -477,6 +477,61 @@ def perf_section() -> list[str]:
     return out
 
 
+def compile_section() -> list[str]:
+    """The main job's compile share (`benchmarks/compile.py`), when its JSON lines exist."""
+    rows = [r for r in read("compile") if r.get("bench") == "compile"]
+    if not rows:
+        return []
+    out = [
+        "## Compile share of the main job",
+        "",
+        "`benchmarks/compile.py`: `diffcloth fit configs/drape_fit.toml` in a fresh process with "
+        "an empty persistent compilation cache (cold), then again with it (warm); trace, MLIR "
+        "lowering and XLA compile seconds summed over every program (jax.monitoring). Since "
+        "6f0e43b the LM engine's Jacobian function is jitted on its own (the solver's init and "
+        "step share one trace of it: trace 19.5 -> 9.2 s), the cameras of one size render in a "
+        "`lax.map` (one renderer in the program), and a single-start LM fit renders its targets "
+        "and fitted video with its own step (`fit/lm_video.py`), so `simulate_and_render` is "
+        "not compiled. `diffcloth warmup CONFIG` compiles a config's programs into the cache "
+        "ahead of its first fit. The rows of a commit come from one run; compare commits only "
+        "on the same machine load (the committed pair ran on the shared machine at load 6-7).",
+        "",
+        _table(
+            [
+                "commit",
+                "run",
+                "wall (s)",
+                "trace (s)",
+                "lower (s)",
+                "XLA compile (s)",
+                "programs",
+                "slowest program (s)",
+                "fit",
+                "bend err",
+                "drag err",
+            ],
+            [
+                [
+                    r.get("commit"),
+                    r["run"],
+                    r["wall_s"],
+                    r["trace_s"],
+                    r["lower_s"],
+                    r["backend_compile_s"],
+                    r["programs"],
+                    " ".join(f"{n} {s}" for n, s in r["top_programs"][:1]),
+                    (r.get("fit") or {}).get("status"),
+                    (r.get("fit") or {}).get("bend_rel_err"),
+                    (r.get("fit") or {}).get("drag_normal_rel_err"),
+                ]
+                for r in rows
+            ],
+        ),  # fmt: skip
+        "",
+    ]
+    return out
+
+
 def write(path: Path = HERE / "RESULTS.md") -> str:
     phys, rend = read("warp_cloth"), read("mitsuba_render")
     agree = read("mitsuba_agreement")
@@ -496,6 +551,7 @@ def write(path: Path = HERE / "RESULTS.md") -> str:
         *render_section(rend),
         "",
         *perf_section(),
+        *compile_section(),
         *agreement_section(agree),
         "",
         *CAVEATS,
@@ -504,6 +560,7 @@ def write(path: Path = HERE / "RESULTS.md") -> str:
             ("mitsuba_render", rend),
             ("interactive", read("interactive")),
             ("fit_step", read("fit_step")),
+            ("compile", read("compile")),
         ),
         "",
     ]
