@@ -167,6 +167,24 @@ def render_section(lines) -> list[str]:
                 "-",
             ]
         )
+    if dc and "fwd_prepared_ms" in dc:
+        ratios = [f"{r['spp']} spp: {r.get('ratio_fwd_prepared', '-')}" for r in mis]
+        rows.append(
+            [
+                "diffcloth, prepared frame (rasterized once: appearance-only forward)",
+                "-",
+                dc["fwd_prepared_ms"],
+                "-",
+                "-",
+                "; ".join(ratios) or "-",
+                "-",
+                "-",
+                "-",
+                "-",
+                "-",
+                "-",
+            ]
+        )
     for r in mis:
         rows.append(
             [
@@ -216,6 +234,16 @@ def render_section(lines) -> list[str]:
             "of a rigid translation); per-vertex fields agree far less (cosine "
             f"{_f(r['grad_cosine'])}) because Mitsuba's per-vertex gradient is Monte Carlo noise "
             "at low spp and the two treat silhouettes differently.",
+        ]
+    if dc and "fwd_prepared_ms" in dc:
+        out += [
+            "",
+            "The prepared-frame row is the forward of an appearance-only change (lights, material, "
+            "textures) of a static cloth and camera: `render.prepare_frame` rasterizes once "
+            f"({_f(dc['prepare_ms'])} ms, not in the row), then `render.render_prepared` shades, "
+            "antialiases and composites (image equal to the full forward's to "
+            f"{_f(dc['prepared_max_abs_diff'])}). Its ratio is against Mitsuba's forward with "
+            "unchanged positions, which reuses its BVH but still casts its rays.",
         ]
     return out
 
@@ -480,6 +508,61 @@ FIT_STEP_NOTES = [
 ]
 
 
+def compile_section() -> list[str]:
+    """The main job's compile share (`benchmarks/compile.py`), when its JSON lines exist."""
+    rows = [r for r in read("compile") if r.get("bench") == "compile"]
+    if not rows:
+        return []
+    out = [
+        "## Compile share of the main job",
+        "",
+        "`benchmarks/compile.py`: `diffcloth fit configs/drape_fit.toml` in a fresh process with "
+        "an empty persistent compilation cache (cold), then again with it (warm); trace, MLIR "
+        "lowering and XLA compile seconds summed over every program (jax.monitoring). Since "
+        "6f0e43b the LM engine's Jacobian function is jitted on its own (the solver's init and "
+        "step share one trace of it: trace 19.5 -> 9.2 s), the cameras of one size render in a "
+        "`lax.map` (one renderer in the program), and a single-start LM fit renders its targets "
+        "and fitted video with its own step (`fit/lm_video.py`), so `simulate_and_render` is "
+        "not compiled. `diffcloth warmup CONFIG` compiles a config's programs into the cache "
+        "ahead of its first fit. The rows of a commit come from one run; compare commits only "
+        "on the same machine load (the committed pair ran on the shared machine at load 6-7).",
+        "",
+        _table(
+            [
+                "commit",
+                "run",
+                "wall (s)",
+                "trace (s)",
+                "lower (s)",
+                "XLA compile (s)",
+                "programs",
+                "slowest program (s)",
+                "fit",
+                "bend err",
+                "drag err",
+            ],
+            [
+                [
+                    r.get("commit"),
+                    r["run"],
+                    r["wall_s"],
+                    r["trace_s"],
+                    r["lower_s"],
+                    r["backend_compile_s"],
+                    r["programs"],
+                    " ".join(f"{n} {s}" for n, s in r["top_programs"][:1]),
+                    (r.get("fit") or {}).get("status"),
+                    (r.get("fit") or {}).get("bend_rel_err"),
+                    (r.get("fit") or {}).get("drag_normal_rel_err"),
+                ]
+                for r in rows
+            ],
+        ),  # fmt: skip
+        "",
+    ]
+    return out
+
+
 def write(path: Path = HERE / "RESULTS.md") -> str:
     phys, rend = read("warp_cloth"), read("mitsuba_render")
     agree = read("mitsuba_agreement")
@@ -499,6 +582,7 @@ def write(path: Path = HERE / "RESULTS.md") -> str:
         *render_section(rend),
         "",
         *perf_section(),
+        *compile_section(),
         *agreement_section(agree),
         "",
         *CAVEATS,
@@ -507,6 +591,7 @@ def write(path: Path = HERE / "RESULTS.md") -> str:
             ("mitsuba_render", rend),
             ("interactive", read("interactive")),
             ("fit_step", read("fit_step")),
+            ("compile", read("compile")),
         ),
         "",
     ]

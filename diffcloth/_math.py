@@ -75,17 +75,26 @@ def materialize(x):
     return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)
 
 
+def _reread(x):
+    """x itself, read back through a row gather: the transpose (in a backward pass) is a
+    scatter-add, whose result XLA always materializes."""
+    n = x.shape[0]
+    return x.at[jnp.arange(n)].get(unique_indices=True, indices_are_sorted=True)
+
+
 @jax.custom_jvp
 def materialize_grad(x):
     """x itself; its tangent is computed once into a buffer (`materialize`), and so, transposed,
-    is its cotangent in the backward pass: XLA's CPU fusion otherwise recomputes a cheap-looking
-    backward chain inside every consumer of the cotangent (e.g. per channel of a stacked
-    per-pixel array). A custom JVP (not a custom VJP), so forward mode (jacfwd: the LM engine,
-    the identifiability analysis) works through it."""
+    is its cotangent in the backward pass (the tangent is re-read through a row gather, whose
+    transpose is a materializing scatter-add: the transpose of `materialize` alone is a gather,
+    which XLA fuses into the consumers and so recomputes): XLA's CPU fusion otherwise recomputes
+    a cheap-looking backward chain inside every consumer of the cotangent (e.g. per channel of a
+    stacked per-pixel array). A custom JVP (not a custom VJP), so forward mode (jacfwd: the LM
+    engine, the identifiability analysis) works through it."""
     return x
 
 
 @materialize_grad.defjvp
 def _materialize_grad_jvp(primals, tangents):
     (x,), (t,) = primals, tangents
-    return x, materialize(t)
+    return x, _reread(materialize(t))

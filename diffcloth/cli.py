@@ -77,6 +77,27 @@ def _fit(args) -> int:
     return 0
 
 
+def _warmup(args) -> int:
+    from diffcloth.outdir import UsageError
+    from diffcloth.runtime import cache_disabled
+
+    if args.no_cache or (args.cache is None and cache_disabled()):
+        raise UsageError(
+            "warmup fills the compilation cache: drop --no-cache (and DIFFCLOTH_CACHE=off), "
+            "or name a folder with --cache DIR"
+        )
+    import jax
+
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    from diffcloth.warmup import warmup
+
+    print(f"diffcloth warmup -> {jax.config.jax_compilation_cache_dir}", flush=True)
+    warmup(args.configs, smoke=args.smoke)
+    print("done: a `diffcloth fit` of these configs with this cache now skips compilation")
+    return 0
+
+
 def _view(args) -> int:
     try:
         from diffcloth.view.cli import run
@@ -216,6 +237,15 @@ def build_parser() -> argparse.ArgumentParser:
         "overrides [fit] devices",
     )
     f.set_defaults(func=_fit)
+    w = sub.add_parser(
+        "warmup",
+        parents=[cache],
+        help="compile fit configs into the compilation cache, so that their first fit is warm",
+    )
+    w.add_argument("configs", nargs="+", help="fit TOML(s), e.g. configs/drape_fit.toml")
+    w.add_argument("--smoke", action="store_true", help="warm up `fit --smoke` instead")
+    w.add_argument("--x64", action="store_true", help="warm up `fit --x64` instead")
+    w.set_defaults(func=_warmup)
     v = sub.add_parser("view", parents=[cache], help="open a scene or fit result in the browser")
     v.add_argument("path", help="scene TOML or fit result folder (see docs/viewer.md)")
     v.add_argument("--host", default="127.0.0.1", help="address to serve on (default: local only)")

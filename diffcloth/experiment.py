@@ -293,29 +293,36 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
 
     from diffcloth import fit as dcfit
     from diffcloth import pipeline, report
+    from diffcloth.fit.lm import num_scalars
+    from diffcloth.fit.lm_video import lm_video, lm_video_ok
+    from diffcloth.fit.scene_fit import add_noise, choose_method
 
     tmp = out.tmp
     (tmp / "config.toml").write_bytes(config_path.read_bytes())
     t0 = time.perf_counter()
-    if targets is None:
-        targets = np.asarray(
-            dcfit.make_targets(sc, settings.truth, noise=settings.noise, seed=settings.seed)
-        )
-        if not np.all(np.isfinite(targets)):
-            where = pipeline.diagnose(sc, dict(settings.truth)) or "non-finite target video"
-            raise cfg.ConfigError(
-                f"[truth] {_fmt_params(settings.truth)}: the simulation of the true values is not "
-                f"usable ({where}); choose values the scene can simulate, or lower [sim] dt"
-            )
-    from diffcloth.fit.lm import num_scalars
-    from diffcloth.fit.scene_fit import choose_method
-
     free_init = {
         n: settings.initial.get(n, pipeline.param_value(sc, n))
         for n in settings.free
         if n not in (settings.ties or {})
     }
     method = choose_method(settings.method, settings.loss, num_scalars(free_init))
+    # a single-start LM fit renders its target and fitted videos with its own compiled step
+    # (`diffcloth.fit.lm_video`): one large program to compile instead of two
+    reuse = lm_video_ok(settings, method, list(free_init))
+    if targets is None:
+        if reuse and set(settings.truth) == set(free_init):
+            video = lm_video(sc, settings.truth, loss=settings.loss, stages=settings.stages)
+            targets = np.asarray(add_noise(video, settings.noise, settings.seed))
+        else:
+            targets = np.asarray(
+                dcfit.make_targets(sc, settings.truth, noise=settings.noise, seed=settings.seed)
+            )
+        if not np.all(np.isfinite(targets)):
+            where = pipeline.diagnose(sc, dict(settings.truth)) or "non-finite target video"
+            raise cfg.ConfigError(
+                f"[truth] {_fmt_params(settings.truth)}: the simulation of the true values is not "
+                f"usable ({where}); choose values the scene can simulate, or lower [sim] dt"
+            )
     optimizer = None
     if method == "adam":
         optimizer = _optimizer(settings.learning_rate, settings.schedule, settings.steps)
@@ -380,10 +387,11 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
     fitted_video = None
     ident = None
     if not interrupted:  # a partial report skips the slow parts
-        render_fn = jax.jit(pipeline.simulate_and_render)
-        fitted_video = np.asarray(
-            render_fn(sc, {k: np.asarray(v) for k, v in result.params.items()})
-        )
+        fitted = {k: np.asarray(v) for k, v in result.params.items()}
+        if reuse and set(fitted) == set(free_init):
+            fitted_video = lm_video(sc, fitted, loss=settings.loss, stages=settings.stages)
+        else:
+            fitted_video = np.asarray(jax.jit(pipeline.simulate_and_render)(sc, fitted))
         if settings.identifiability and result.status != "nonfinite":
             ident = dcfit.scene_identifiability(
                 sc, targets, result.params, noise_sigma=settings.noise_sigma, ties=settings.ties

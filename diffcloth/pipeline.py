@@ -146,8 +146,8 @@ def render_frame(
         planes=planes,
         size=max(getattr(scene, "shadow_map_size", 256) // 2, 8),
     )
-    images, masks = [], []
-    for i, camera in enumerate(scene.cameras):
+
+    def one(camera, i):
         background = scene.background
         if capture is not None:
             camera = render.perturb_camera(camera, capture.rotation[i], capture.translation[i])
@@ -172,11 +172,28 @@ def render_frame(
         img = img[..., :3]
         if capture is not None:
             img = img * capture.exposure[i]
-        images.append(img)
-        masks.append(mask)
-    if with_mask:
-        return jnp.stack(images), jnp.stack(masks)
-    return jnp.stack(images)
+        return img, mask
+
+    images, masks = _each_camera(one, scene.cameras)
+    return (images, masks) if with_mask else images
+
+
+def _each_camera(one, cameras):
+    """(images, masks) of `one(camera, index)` stacked over the cameras. Cameras of one size and
+    kind run in a `lax.map` (one copy of the renderer in the compiled program instead of one per
+    camera: about half the compile time of a two-camera fit); others one after another."""
+    leaves = [jax.tree_util.tree_flatten(c) for c in cameras]
+    same = all(
+        td == leaves[0][1]
+        and all(jnp.shape(a) == jnp.shape(b) and jnp.result_type(a) == jnp.result_type(b)
+                for a, b in zip(lv, leaves[0][0], strict=True))
+        for lv, td in leaves
+    )  # fmt: skip
+    if len(cameras) > 1 and same:
+        stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *cameras)
+        return jax.lax.map(lambda a: one(*a), (stacked, jnp.arange(len(cameras))))
+    outs = [one(camera, i) for i, camera in enumerate(cameras)]
+    return jnp.stack([o[0] for o in outs]), jnp.stack([o[1] for o in outs])
 
 
 def frame_spheres(scene, body_traj: tuple):

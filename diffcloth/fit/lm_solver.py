@@ -42,18 +42,27 @@ def _compiled(residual_fn, cons_items, batched: bool):
     # Tolerances of the solver's own (elementwise Cauchy) test; the host loop adds its own tests.
     solver = optx.LevenbergMarquardt(rtol=1e-7, atol=1e-12)
 
-    def fn(y, args):
-        loss_args, stage_args, (anchor, sqrt_mu) = args
-        flat, unravel = ravel_pytree(y)
-        z = jax.lax.stop_gradient(flat)
+    @eqx.filter_jit
+    def residual_and_jac(y, loss_args, stage_args):
+        """(r (m,), J (m, n)) at raw y (a dict; J's columns follow `ravel_pytree`): one forward
+        pass carrying n tangents (the primal is computed once, unbatched). Jitted on its own:
+        tracing the pipeline under vmap and jvp is most of tracing init and step, and so it is
+        traced once per argument shapes, not in each of the solver's init (two shape
+        evaluations) and step (jax.linearize)."""
+        z, unravel = ravel_pytree(y)
 
         def g(v):
             return jnp.ravel(residual_fn(to_physical(unravel(v), cons), *loss_args, *stage_args))
 
-        # one forward pass carrying n tangents (the primal is computed once, unbatched)
-        r, jac = jax.vmap(lambda t: jax.jvp(g, (z,), (t,)), out_axes=(None, 1))(
+        return jax.vmap(lambda t: jax.jvp(g, (z,), (t,)), out_axes=(None, 1))(
             jnp.eye(z.size, dtype=z.dtype)
         )
+
+    def fn(y, args):
+        loss_args, stage_args, (anchor, sqrt_mu) = args
+        flat = ravel_pytree(y)[0]
+        z = jax.lax.stop_gradient(flat)
+        r, jac = residual_and_jac(jax.lax.stop_gradient(y), loss_args, stage_args)
         # prior rows sqrt(mu) (y - anchor): hold parameters the stage cannot determine (mu = 0 in
         # the final stage)
         prior = sqrt_mu.astype(flat.dtype) * (flat - anchor.astype(flat.dtype))

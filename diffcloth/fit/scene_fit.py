@@ -71,7 +71,12 @@ def make_targets(scene, truth: Mapping[str, Any], *, noise: float = 0.0, seed: i
     from diffcloth import pipeline
 
     pipeline.check_param_names(truth)
-    video = jax.jit(pipeline.simulate_and_render)(scene, dict(truth))
+    return add_noise(jax.jit(pipeline.simulate_and_render)(scene, dict(truth)), noise, seed)
+
+
+def add_noise(video, noise: float, seed: int):
+    """`video` plus Gaussian noise of standard deviation `noise` (key `PRNGKey(seed)`)."""
+    video = jnp.asarray(video)
     if noise > 0:
         key = jax.random.PRNGKey(seed)
         video = video + noise * jax.random.normal(key, video.shape, video.dtype)

@@ -51,10 +51,12 @@ from diffcloth.render.lights import (
     make_lights,
 )
 from diffcloth.render.mesh import mesh_surface, vertex_normals
+from diffcloth.render.prepared import PreparedFrame, prepare_frame, render_prepared
 from diffcloth.render.raster import (
     Fragments,
     GBuffer,
     antialias,
+    antialias_weights,
     composite,
     edge_neighbors,
     interpolate,

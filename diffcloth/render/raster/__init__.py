@@ -65,16 +65,24 @@ min, load ~14): 256 x 256 forward 43 / 34 -> 20 / 18 ms, forward + backward 55 /
 
 # ruff: noqa: F401  (re-exports: every name stays importable from diffcloth.render.raster)
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH, Fragments, GBuffer
-from diffcloth.render.raster.gbuffer import antialias, composite, rasterize_gbuffer, render_mesh
+from diffcloth.render.raster.gbuffer import (
+    antialias,
+    antialias_weights,
+    composite,
+    rasterize_gbuffer,
+    render_mesh,
+)
 from diffcloth.render.raster.resolve import _resolve, interpolate, rasterize, silhouette_pairs
 from diffcloth.render.raster.scan import _compact, _cummax, _cumsum
 from diffcloth.render.raster.silhouette import (
     _STEPS,
     _crossings,
+    _edge_crossing,
     _pairs,
     _reach,
     _search,
     _silhouette,
+    _walk,
     default_silhouette_budget,
 )
 from diffcloth.render.raster.topology import _edge_neighbors_jnp, edge_neighbors

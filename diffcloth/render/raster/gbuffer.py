@@ -14,20 +14,45 @@ from diffcloth.render.raster.buffers import Fragments, GBuffer
 from diffcloth.render.raster.resolve import interpolate, rasterize
 
 
-def antialias(color, buffer):
+def antialias(color, buffer, weights=None):
     """Analytic silhouette antialiasing; gives gradients w.r.t. silhouette and occlusion edges.
 
     Args:
       color: (H, W, C) image computed from the buffer (e.g. interpolated or shaded colour,
         with background filled in).
-      buffer: Fragments or GBuffer (uses the id, depth and crossings).
+      buffer: Fragments or GBuffer (uses the id, depth and crossings); unused when `weights`
+        is given.
+      weights: optional (4, H, W) `antialias_weights(buffer, color.dtype)`, computed once for
+        a static geometry and camera (e.g. by `render.prepare_frame`).
     Returns:
       (H, W, C) colour where each pixel pair straddling a silhouette is blended by how far the edge
       lies from the pixel midline. Converges to `color` as pixels shrink.
     """
+    w = antialias_weights(buffer, color.dtype) if weights is None else weights
+    nb = [
+        jnp.pad(color[:, 1:], ((0, 0), (0, 1), (0, 0))),
+        jnp.pad(color[:, :-1], ((0, 0), (1, 0), (0, 0))),
+        jnp.pad(color[1:], ((0, 1), (0, 0), (0, 0))),
+        jnp.pad(color[:-1], ((1, 0), (0, 0), (0, 0))),
+    ]
+    out = color
+    for wk, ck in zip(w, nb, strict=True):
+        out = out + wk[..., None] * (ck - color)
+    return out
+
+
+def antialias_weights(buffer, dtype):
+    """(4, H, W) weight of each pixel's move toward its right / left / lower / upper
+    neighbour's colour in `antialias` (0 away from silhouettes); differentiable through the
+    buffer's crossings. Depends on the geometry and camera only.
+
+    Args:
+      buffer: Fragments or GBuffer (uses the id, depth and crossings).
+      dtype: float dtype of the weights (the colour's).
+    """
     ids = buffer.triangle_id if isinstance(buffer, Fragments) else buffer.surface_id
     depth = jax.lax.stop_gradient(buffer.depth)
-    cross = buffer.crossings.astype(color.dtype)
+    cross = buffer.crossings.astype(dtype)
     if cross.shape[-1] == 4:  # no slopes: edges taken perpendicular to the pair (nvdiffrast)
         cross = jnp.concatenate([cross, jnp.zeros_like(cross)], axis=-1)
     if cross.shape[-1] == 8:  # no shares: each edge wholly to the pair that found it
@@ -58,8 +83,7 @@ def antialias(color, buffer):
         ids[:-1], ids[1:], depth[:-1], depth[1:], cross[:-1, :, 2], cross[1:, :, 3],
         cross[:-1, :, 6], cross[1:, :, 7], cross[:-1, :, 10], cross[1:, :, 11],
     )  # fmt: skip
-    # weight of each pixel's move toward its right / left / lower / upper neighbour's colour
-    w = materialize(
+    return materialize(
         jnp.stack(
             [
                 jnp.pad(h_a, ((0, 0), (0, 1))),
@@ -69,16 +93,6 @@ def antialias(color, buffer):
             ]
         )
     )
-    nb = [
-        jnp.pad(color[:, 1:], ((0, 0), (0, 1), (0, 0))),
-        jnp.pad(color[:, :-1], ((0, 0), (1, 0), (0, 0))),
-        jnp.pad(color[1:], ((0, 1), (0, 0), (0, 0))),
-        jnp.pad(color[:-1], ((1, 0), (0, 0), (0, 0))),
-    ]
-    out = color
-    for wk, ck in zip(w, nb, strict=True):
-        out = out + wk[..., None] * (ck - color)
-    return out
 
 
 def rasterize_gbuffer(

@@ -32,16 +32,9 @@ def _reach(s: _Setup, neighbors, walk: int):
     return silm, reach
 
 
-def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: int):
-    """Silhouette crossing for pixel pairs given as arrays of any (common) shape.
-
-    start: front triangle; active: search here; a_front: the first pixel of the pair (at (px,
-    py)) is the nearer one; vertical: the partner is below (else to the right). Returns the
-    fraction t in [0, 1] from the front pixel's centre toward the back one's where the silhouette
-    edge is crossed (differentiable), -1 where none is found or the edge belongs to the other
-    pair direction; and the edge's slope k in [0, 1] relative to the pair direction (0 where none).
-    """
-    m = s.edge.shape[0]
+def _walk(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: int):
+    """`_search`'s walk, without gradient: (found, sel) per pair, sel the flat index
+    3 * triangle + k of the silhouette edge found (anything where none is)."""
     dtype = s.edge.dtype
     table = materialize(jax.lax.stop_gradient(jnp.concatenate([s.edge, s.origin], axis=-1)))
     one = jnp.ones((), dtype)
@@ -84,6 +77,24 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
         (_, _, found, sel), _ = level(init, None)
     else:
         (_, _, found, sel), _ = jax.lax.scan(level, init, None, length=walk + 1)
+    return found, sel
+
+
+@jax.checkpoint
+def _edge_crossing(s: _Setup, found, sel, a_front, vertical, px, py):
+    """`_search`'s differentiable crossing (t, k, share) of the edges `sel` found by `_walk`.
+    Recomputed in the backward pass (jax.checkpoint: cheap elementwise work), so that its only
+    residuals are its inputs: inside `_crossings`' lax.switch every branch returns the union of
+    all branches' residuals, zero-filled in the branches not taken."""
+    m = s.edge.shape[0]
+    dtype = s.edge.dtype
+    one = jnp.ones((), dtype)
+    ux = jnp.where(vertical, 0.0, one)
+    uy = jnp.where(vertical, one, 0.0)
+    sx = px + jnp.where(a_front, 0.0, ux)
+    sy = py + jnp.where(a_front, 0.0, uy)
+    sgn = jnp.where(a_front, one, -one)
+    dx, dy = sgn * ux, sgn * uy
     r = s.edge.reshape(m * 3, 3)[sel]  # (..., 3) differentiable row of the edge found
     o = s.origin[sel // 3]
     ef = r[..., 0] * (sx - o[..., 0]) + r[..., 1] * (sy - o[..., 1]) + r[..., 2]
@@ -98,6 +109,20 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
     t = jnp.where(found, jnp.clip(safe_div(ef, jnp.where(found, slope, 1.0)), 0.0, 1.0), -1.0)
     k = jnp.where(found, jnp.clip(safe_div(across, jnp.where(found, along, 1.0)), 0.0, 1.0), 0.0)
     return t, k, jnp.where(found, share, 0.0)
+
+
+def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: int):
+    """Silhouette crossing for pixel pairs given as arrays of any (common) shape.
+
+    start: front triangle; active: search here; a_front: the first pixel of the pair (at (px,
+    py)) is the nearer one; vertical: the partner is below (else to the right). Returns the
+    fraction t in [0, 1] from the front pixel's centre toward the back one's where the silhouette
+    edge is crossed (differentiable), -1 where none is found or the edge belongs to the other
+    pair direction; the edge's slope k in [0, 1] relative to the pair direction (0 where none);
+    and this pair direction's share of the edge (`pair_share`, 0 where none).
+    """
+    found, sel = _walk(s, sil, nbr, start, active, a_front, vertical, px, py, walk)
+    return _edge_crossing(s, found, sel, a_front, vertical, px, py)
 
 
 def default_silhouette_budget(width: int, height: int) -> int:
