@@ -473,8 +473,39 @@ def perf_section() -> list[str]:
                 ],
             ),
             "",
+            *FIT_STEP_NOTES,
         ]
     return out
+
+
+#: what changed in the fit step since d26acf4 and where its time goes (prose under the table)
+FIT_STEP_NOTES = [
+    "What changed and where the time goes (main job: 13 x 10 net, 15 frames x 16 substeps, "
+    "5 video frames x 2 cameras at 64^2; drape_material: 24 frames, 8 video frames):",
+    "",
+    "- Regression after d26acf4: the 'impact' contact rule (commits bac6806, 93a768c; the "
+    "symplectic default, which the main job needs: its loss is continuous in the parameters) "
+    "made the physics gradient 2.4x that of the 'coulomb' rule (112.8 vs 44.1 ms, same process, "
+    "loaded machine) at an unchanged forward (7.9 ms): its autodiff backward is a long chain of "
+    "small elementwise pieces that XLA's CPU fusion splits at every broadcast over the 3 "
+    "coordinates and recomputes in each piece. `physics/contact_jac.py` now gives the contact a "
+    "custom JVP that applies each node's (6, 19) forward-mode Jacobian with one contraction "
+    "(transposed: one contraction in the backward pass; forward mode for the LM engine works "
+    "too): physics gradient 112.8 -> 78.2 ms (0.69x), values identical.",
+    "- `pipeline.render_frames` renders videos of at most `VMAP_PIXELS` (2^17) pixels as one "
+    "vmapped batch instead of a checkpointed `lax.map`: the gradient no longer renders every "
+    "frame a second time (0.76x main job, 0.71x drape_material, same process).",
+    "- Where the time goes (same-process, loaded machine, before the render change): physics "
+    "forward 8 ms and backward ~70 ms per step (240 substeps, thunk-launch bound: ~50,000 XLA "
+    "thunks per step, ~200 per substep in forward plus backward); render forward ~30 ms and "
+    "backward ~45-75 ms for 10 images of 64^2 (compute bound, ~180 fusions per image). Compile "
+    "(first call): ~30 s idle for d26acf4 and db964f2 (the lead's idle run); not split here.",
+    "- Tried without a gain: optimization barriers in the contact (removed before fusion), "
+    "materialized cotangents, a Jacobian over the whole sphere contact (projection included: "
+    "1.4x slower), unrolling the substep scan (2x: 7 % fewer thunks, slower compile), not "
+    "checkpointing the frames (8 %), checkpointing whole substeps.",
+    "",
+]
 
 
 def compile_section() -> list[str]:

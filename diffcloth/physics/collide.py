@@ -144,7 +144,7 @@ def collide(
         x = jnp.where(inside[None], c + r * nrm, x)
         if x_start is not None:
             d0 = _direction_planar(x_start - (c - vel * h))[0] - r
-            x, v_new = _impact_contact(x, v, v_start, vel, nrm, inside, d0, dist - r, friction, h)
+            x, v_new = _contact(x, v, v_start, vel, nrm, inside, d0, dist - r, friction, h)
         else:
             v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
             v_new = _contact_velocity(v_in, vel, nrm, inside, friction)
@@ -158,9 +158,7 @@ def collide(
         x = jnp.where(inside[None], x - s[None] * nrm, x)
         if x_start is not None:
             d0 = _dot(x_start, nrm) - colliders.planes.offset[k] - margin
-            x, v_new = _impact_contact(
-                x, v, v_start, jnp.zeros_like(nrm), nrm, inside, d0, s, friction, h
-            )
+            x, v_new = _contact(x, v, v_start, jnp.zeros_like(nrm), nrm, inside, d0, s, friction, h)
         else:
             v_in = v if x_prev is None else jnp.where(inside[None], (x - x_prev) / h, v)
             v_new = _contact_velocity(v_in, jnp.zeros_like(nrm), nrm, inside, friction)
@@ -170,6 +168,18 @@ def collide(
     si = jnp.stack(sphere_imp) if sphere_imp else zeros
     pi = jnp.stack(plane_imp) if plane_imp else zeros
     return x, v, si, pi
+
+
+def _contact(x, v, v_start, vel, nrm, inside, d0, d1, friction, h):
+    """`_impact_contact` with the per-node Jacobian derivative (`contact_jac`), same values."""
+    from diffcloth.physics.contact_jac import impact_contact
+
+    dt = x.dtype
+    v_start = v if v_start is None else v_start  # no kick
+    as_ = lambda a: jnp.asarray(a, dt)
+    return impact_contact(
+        x, v, v_start, as_(vel), nrm, inside.astype(dt), as_(d0), as_(d1), as_(friction), as_(h)
+    )
 
 
 def _finite_points(x):
