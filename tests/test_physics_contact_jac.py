@@ -58,6 +58,7 @@ def test_values_equal_plain_rule(case):
             np.testing.assert_array_equal(np.asarray(f), np.asarray(r))
 
 
+@pytest.mark.slow  # ~14 s; the default FD test checks the same gradients
 def test_vjp_and_jvp_equal_autodiff(case):
     a, inside = case
     with jax.enable_x64(True):

@@ -244,6 +244,7 @@ def test_row_12_vertex_at_sphere_centre_through_collide_and_render():
     np.testing.assert_allclose(surf.positions[12], centre + jnp.array([0.0, 0.4, 0.0]), atol=1e-12)
 
 
+@pytest.mark.slow  # ~13 s: a full render of a degenerate net
 def test_row_15_collapsed_control_net_renders_finite():
     point = jnp.asarray([0.1, 0.2, -0.1])
     net = jnp.broadcast_to(point, (4, 4, 3)) * 1.0  # every control point equal
