@@ -56,9 +56,10 @@ def _wraps(wrap):
     return wrap_u, wrap_v
 
 
-def _bilinear(fetch, h, w, uv, wrap_u, wrap_v):
-    """Bilinear filter of texels fetch(row, col) -> (..., c) over an h x w grid (ints, or per-lookup
-    int arrays for mip levels chosen per pixel)."""
+def _texel_corner(uv, h, w, wrap_u, wrap_v):
+    """Bilinear footing of uv (..., 2) on an h x w grid: the upper-left texel's (column, row) as
+    floats x0f, y0f (...) and the fractions fx, fy (..., 1) toward its right and lower neighbours
+    (texel centres at half-integers; "clamp" clips to the border texels)."""
     x = uv[..., 0] * w - 0.5
     y = uv[..., 1] * h - 0.5
     if wrap_u == "clamp":
@@ -69,6 +70,13 @@ def _bilinear(fetch, h, w, uv, wrap_u, wrap_v):
     y0f = jax.lax.stop_gradient(jnp.floor(y))
     fx = (x - x0f)[..., None]
     fy = (y - y0f)[..., None]
+    return x0f, y0f, fx, fy
+
+
+def _bilinear(fetch, h, w, uv, wrap_u, wrap_v):
+    """Bilinear filter of texels fetch(row, col) -> (..., c) over an h x w grid (ints, or per-lookup
+    int arrays for mip levels chosen per pixel)."""
+    x0f, y0f, fx, fy = _texel_corner(uv, h, w, wrap_u, wrap_v)
     x0 = x0f.astype(jnp.int32)
     y0 = y0f.astype(jnp.int32)
     xa, xb = _wrap_index(x0, w, wrap_u), _wrap_index(x0 + 1, w, wrap_u)
@@ -114,16 +122,7 @@ def _bilinear_quad(table, index, h, w, c, uv, wrap_u, wrap_v):
     the corner texel and its right, lower and lower-right neighbours (`_quad_texels`). Same
     arithmetic, so the same values and gradients as four separate fetches. The row indices are
     materialized: fused into the gather, they would be recomputed per channel."""
-    x = uv[..., 0] * w - 0.5
-    y = uv[..., 1] * h - 0.5
-    if wrap_u == "clamp":
-        x = jnp.clip(x, 0.0, w - 1.0)
-    if wrap_v == "clamp":
-        y = jnp.clip(y, 0.0, h - 1.0)
-    x0f = jax.lax.stop_gradient(jnp.floor(x))
-    y0f = jax.lax.stop_gradient(jnp.floor(y))
-    fx = (x - x0f)[..., None]
-    fy = (y - y0f)[..., None]
+    x0f, y0f, fx, fy = _texel_corner(uv, h, w, wrap_u, wrap_v)
     rows = index(_wrap_start(y0f, h, wrap_v), _wrap_start(x0f, w, wrap_u))
     q = table[materialize(rows) if rows.ndim else rows]
     c00, c01, c10, c11 = (q[..., k * c : (k + 1) * c] for k in range(4))
