@@ -6,43 +6,20 @@ import logging
 import jax
 import numpy as np
 import pytest
+from tiny_scenes import TINY_SCENE
 
 from diffcloth import config as cfg
 from diffcloth import pipeline, scene
 from diffcloth.config.fit import FitSettings
 from diffcloth.fit.lm_video import lm_video, lm_video_ok
 
-TOML = """
-[net]
-rows = 4
-cols = 5
-width = 0.6
-height = 0.45
-center = [0.0, 0.8, 0.0]
-plane = "xz"
-
-[sim]
-dt = 0.0333333333333
-num_frames = 3
-num_substeps = 16
-
-[[spheres]]
-center = [0.0, 0.5, 0.0]
-radius = 0.2
-
-[render]
-width = 16
-height = 16
-level = 2
-
-[[cameras]]
-eye = [0.0, 1.3, 1.9]
-target = [0.0, 0.55, 0.0]
-
-[[cameras]]
+TOML = (
+    TINY_SCENE
+    + """[[cameras]]
 eye = [1.9, 0.9, 0.4]
 target = [0.0, 0.5, 0.0]
 """
+)
 
 
 def test_lm_video_ok_only_for_a_single_start_lm_fit_without_ties_or_staged_free_sets():

@@ -6,39 +6,15 @@ import sys
 from pathlib import Path
 
 import pytest
+from tiny_scenes import TINY_SCENE
 
 from diffcloth.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
-TINY_FIT = """
-[net]
-rows = 4
-cols = 5
-width = 0.6
-height = 0.45
-center = [0.0, 0.8, 0.0]
-plane = "xz"
-
-[sim]
-dt = 0.0333333333333
-num_frames = 3
-num_substeps = 16
-
-[[spheres]]
-center = [0.0, 0.5, 0.0]
-radius = 0.2
-
-[render]
-width = 16
-height = 16
-level = 2
-
-[[cameras]]
-eye = [0.0, 1.3, 1.9]
-target = [0.0, 0.55, 0.0]
-
-[truth]
+TINY_FIT = (
+    TINY_SCENE
+    + """[truth]
 bend = 2e-3
 
 [fit]
@@ -48,6 +24,7 @@ steps = 2
 [fit.initial]
 bend = 1e-3
 """
+)
 
 
 def test_warmup_needs_the_cache_and_a_valid_config(tmp_path, capsys, monkeypatch):
