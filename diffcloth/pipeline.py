@@ -68,37 +68,57 @@ def split_colliders(colliders):
 
 def simulate_all(scene, params=None) -> tuple[physics.ClothState, tuple]:
     """Cloth and rigid-body trajectories: (ClothState with leaves (num_frames, rows, cols, 3),
-    tuple of RigidBody with a leading num_frames axis; empty without bodies)."""
+    tuple of RigidBody with a leading num_frames axis; empty without bodies).
+
+    Differentiated as `scene.sim.gradient` says ([sim] gradient): "auto" (default) computes the
+    trajectory's derivative by forward sensitivities (`physics.sensitivity.mixed_mode`) when at
+    most 16 scalars of the physics inputs are differentiated (e.g. a fit's material parameters)
+    and the Jacobian fits 256 MB, else in reverse mode; "forward" / "reverse" force one of them.
+    Values are the same either way."""
     scene = apply_params(scene, params)
-    if not scene.bodies:
-        return simulate(scene), ()
-    planes, spheres = split_colliders(scene.colliders)
-    return physics.coupled_rollout(
-        scene.net,
-        scene.sim,
-        scene.material,
-        scene.state,
-        scene.bodies,
-        num_frames=scene.num_frames,
-        planes=planes,
-        colliders=spheres,
-        two_way=scene.two_way,
+    run = physics.sensitivity.mixed_mode(
+        _physics_fn(scene.num_frames, scene.two_way), scene.sim.gradient
     )
+    return run(scene.net, scene.sim, scene.material, scene.state, scene.bodies, scene.colliders)
+
+
+_PHYSICS_FNS = {}
+
+
+def _physics_fn(num_frames: int, two_way: bool):
+    """(net, sim, material, state, bodies, colliders) -> (trajectory, body trajectories): the
+    physics of a scene as a function of its traced leaves only (nothing closed over, as
+    `mixed_mode` needs). One function object per (num_frames, two_way)."""
+    key = (num_frames, two_way)
+    if key not in _PHYSICS_FNS:
+
+        def run(net, sim, material, state, bodies, colliders):
+            if not bodies:
+                traj = physics.rollout(
+                    net, sim, material, state, num_frames=num_frames, colliders=colliders
+                )
+                return traj, ()
+            planes, spheres = split_colliders(colliders)
+            return physics.coupled_rollout(
+                net,
+                sim,
+                material,
+                state,
+                bodies,
+                num_frames=num_frames,
+                planes=planes,
+                colliders=spheres,
+                two_way=two_way,
+            )
+
+        _PHYSICS_FNS[key] = run
+    return _PHYSICS_FNS[key]
 
 
 def simulate(scene, params=None) -> physics.ClothState:
-    """The cloth trajectory: ClothState with leaves (num_frames, rows, cols, 3)."""
-    scene = apply_params(scene, params)
-    if scene.bodies:
-        return simulate_all(scene)[0]
-    return physics.rollout(
-        scene.net,
-        scene.sim,
-        scene.material,
-        scene.state,
-        num_frames=scene.num_frames,
-        colliders=scene.colliders,
-    )
+    """The cloth trajectory: ClothState with leaves (num_frames, rows, cols, 3) (differentiated
+    as `simulate_all` says)."""
+    return simulate_all(scene, params)[0]
 
 
 def render_frame(

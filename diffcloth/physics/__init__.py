@@ -4,7 +4,7 @@ net = grid_net(10, 13, (1.2, 0.9), pinned="top_corners")
 traj = rollout(net, make_sim(), make_material(), rest_state(net), num_frames=60)
 """
 
-from diffcloth.physics import coupled, rigid  # noqa: E402  (rigid bodies and cloth coupling)
+from diffcloth.physics import coupled, rigid, sensitivity  # noqa: E402  (bodies; mixed-mode gradients)
 from diffcloth.physics.collide import Colliders, as_colliders, collide, make_colliders
 from diffcloth.physics.coupled import body_colliders, coupled_rollout, coupled_step
 from diffcloth.physics.forces import (
@@ -84,6 +84,7 @@ __all__ = [
     "make_rigid_settings",
     "make_thrusters",
     "rigid",
+    "sensitivity",
     "rigid_rollout",
     "rigid_step",
     "Colliders",

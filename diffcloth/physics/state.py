@@ -12,6 +12,8 @@ import numpy as np
 INTEGRATORS = ("symplectic", "implicit")
 #: contact velocity rules: "auto" is "displacement" for the implicit integrator, else "coulomb"
 FRICTION_RULES = ("auto", "coulomb", "displacement", "impact")
+#: how the pipeline differentiates the rollout (see SimSettings.gradient, physics.sensitivity)
+GRADIENT_MODES = ("auto", "forward", "reverse")
 
 
 @jax.tree_util.register_dataclass
@@ -48,6 +50,11 @@ class SimSettings:
         from the estimated time of impact on (continuous in the parameters); "auto" picks
         "displacement" for implicit, "impact" otherwise.
         `collision_margin` is the contact thickness.
+      gradient: static, how the pipeline differentiates the rollout (`physics.sensitivity`):
+        "forward" carries the tangents of the differentiated inputs along the rollout (forward
+        sensitivities, cheap for a few scalar parameters), "reverse" replays it backwards
+        (checkpointed), "auto" (default) picks forward when at most 16 scalars are
+        differentiated and their Jacobian fits 256 MB, else reverse.
     """
 
     dt: jax.Array
@@ -60,6 +67,7 @@ class SimSettings:
     cg_iters: int = dataclasses.field(default=200, metadata={"static": True})
     cg_tol: float = dataclasses.field(default=1e-5, metadata={"static": True})
     friction_rule: str = dataclasses.field(default="auto", metadata={"static": True})
+    gradient: str = dataclasses.field(default="auto", metadata={"static": True})
 
     @property
     def h(self):
@@ -94,6 +102,7 @@ def make_sim(
     cg_iters: int = 200,
     cg_tol: float = 1e-5,
     friction_rule: str = "auto",
+    gradient: str = "auto",
     dtype=None,
 ) -> SimSettings:
     """Validated constructor for SimSettings (see its attributes).
@@ -116,6 +125,8 @@ def make_sim(
         raise ValueError(f"collision_margin: must be in [0, inf) m, got {collision_margin!r}")
     if friction_rule not in FRICTION_RULES:
         raise ValueError(f"friction_rule: must be one of {FRICTION_RULES}, got {friction_rule!r}")
+    if gradient not in GRADIENT_MODES:
+        raise ValueError(f"gradient: must be one of {GRADIENT_MODES}, got {gradient!r}")
     if not (0 < cg_tol < 1):
         raise ValueError(f"cg_tol: must be in (0, 1), got {cg_tol!r}")
     dtype = dtype or jnp.zeros(()).dtype
@@ -130,6 +141,7 @@ def make_sim(
         cg_iters=int(cg_iters),
         cg_tol=float(cg_tol),
         friction_rule=friction_rule,
+        gradient=gradient,
     )
 
 

@@ -208,8 +208,20 @@ def _stencil_vjp(cfg, params, x, v, g):
     return ct_params, ct_x, ct_v
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _stencil(cfg, params, x, v):
+    """The stencil forces (3, R, C): with the hand-written VJP, or, while tracing forward
+    sensitivities (`_PLAIN_STENCIL`), the same primal under plain autodiff (forward mode works)."""
+    if _PLAIN_STENCIL[0]:
+        return _stencil_primal(cfg, params, x, v)
+    return _stencil_hand(cfg, params, x, v)
+
+
+#: [True] while tracing forward sensitivities (`physics.sensitivity.forward_tracing`)
+_PLAIN_STENCIL = [False]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _stencil_hand(cfg, params, x, v):
     return _stencil_primal(cfg, params, x, v)
 
 
@@ -221,4 +233,4 @@ def _stencil_bwd(cfg, res, g):
     return _stencil_vjp(cfg, *res, g)
 
 
-_stencil.defvjp(_stencil_fwd, _stencil_bwd)
+_stencil_hand.defvjp(_stencil_fwd, _stencil_bwd)
