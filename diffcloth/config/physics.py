@@ -20,7 +20,7 @@ from diffcloth.config._fields import (
 from diffcloth.physics.massspring import LUMPINGS, MASS_SPRING_FIELDS, mass_spring_range
 from diffcloth.physics.material import MATERIAL_FIELDS, material_range
 from diffcloth.physics.net import PIN_PRESETS
-from diffcloth.physics.state import FRICTION_RULES, INTEGRATORS
+from diffcloth.physics.state import FRICTION_RULES, GRADIENT_MODES, INTEGRATORS
 
 #: [material] model -> its numeric fields (name -> (lo, inclusive, unit, default)) and range text
 MATERIAL_MODELS = {
@@ -97,6 +97,7 @@ class SimConfig:
     newton_iters: int = 3
     cg_iters: int = 200
     cg_tol: float = 1e-5
+    gradient: str = "auto"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,6 +221,7 @@ def parse_sim(t: Mapping[str, Any]) -> SimConfig:
         cg_tol=get_number(
             t, "cg_tol", d.cg_tol, where=w, lo=0, hi=1, lo_inclusive=False, hi_inclusive=False
         ),
+        gradient=get_choice(t, "gradient", d.gradient, GRADIENT_MODES, where=w),
     )
 
 
@@ -294,6 +296,7 @@ def build_physics(config, dtype=None) -> PhysicsScene:
         newton_iters=s.newton_iters,
         cg_iters=s.cg_iters,
         cg_tol=s.cg_tol,
+        gradient=s.gradient,
         dtype=dtype,
     )
     m = config.material
