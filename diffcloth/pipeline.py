@@ -72,7 +72,7 @@ def simulate_all(scene, params=None) -> tuple[physics.ClothState, tuple]:
 
     Differentiated as `scene.sim.gradient` says ([sim] gradient): "auto" (default) computes the
     trajectory's derivative by forward sensitivities (`physics.sensitivity.mixed_mode`) when at
-    most 16 scalars of the physics inputs are differentiated (e.g. a fit's material parameters)
+    most 2 scalars of the physics inputs are differentiated (e.g. a fit's material parameters)
     and the Jacobian fits 256 MB, else in reverse mode; "forward" / "reverse" force one of them.
     Values are the same either way."""
     scene = apply_params(scene, params)

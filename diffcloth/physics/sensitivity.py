@@ -27,8 +27,11 @@ from jax.custom_derivatives import SymbolicZero
 
 from diffcloth.physics.state import GRADIENT_MODES
 
-#: "auto" uses forward sensitivities for at most this many differentiated scalars ...
-FORWARD_MAX_PARAMS = 16
+#: "auto" uses forward sensitivities for at most this many differentiated scalars ... (the P
+#: tangents ride in every fused kernel of the substep: on the 2-core CPU, loaded, the main job's
+#: physics gradient took 0.84x of reverse mode with P = 2, drape_material's 2.25x with P = 4;
+#: benchmarks/fit_step_modes.py)
+FORWARD_MAX_PARAMS = 2
 #: ... and when the Jacobian (outputs x P) takes at most this many bytes
 FORWARD_MAX_BYTES = 256 << 20
 

@@ -53,7 +53,7 @@ class SimSettings:
       gradient: static, how the pipeline differentiates the rollout (`physics.sensitivity`):
         "forward" carries the tangents of the differentiated inputs along the rollout (forward
         sensitivities, cheap for a few scalar parameters), "reverse" replays it backwards
-        (checkpointed), "auto" (default) picks forward when at most 16 scalars are
+        (checkpointed), "auto" (default) picks forward when at most 2 scalars are
         differentiated and their Jacobian fits 256 MB, else reverse.
     """
 
