@@ -34,9 +34,16 @@ def _reach(s: _Setup, neighbors, walk: int):
 
 def _walk(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: int):
     """`_search`'s walk, without gradient: (found, sel) per pair, sel the flat index
-    3 * triangle + k of the silhouette edge found (anything where none is)."""
+    3 * triangle + k of the silhouette edge found (0 where none is).
+
+    The walk+1 levels loop over one int32 state per pair (c >= 0: the triangle being crossed;
+    -1: stopped without a silhouette; -2 - sel: found edge sel): a level is one or two fusions
+    (four carries ran about nine small fusions per level; unrolled, XLA's fusion recomputes
+    the levels' chains inside each other)."""
     dtype = s.edge.dtype
     table = materialize(jax.lax.stop_gradient(jnp.concatenate([s.edge, s.origin], axis=-1)))
+    # the triangle across each flat edge, -1 where the edge is a silhouette (the walk stops)
+    nxt = materialize(jnp.where(sil, -1, nbr).astype(jnp.int32))
     one = jnp.ones((), dtype)
     ux = jnp.where(vertical, 0.0, one)
     uy = jnp.where(vertical, one, 0.0)
@@ -44,40 +51,32 @@ def _walk(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: i
     sy = py + jnp.where(a_front, 0.0, uy)
     sgn = jnp.where(a_front, one, -one)
     dx, dy = sgn * ux, sgn * uy  # direction from front to back
-    shape = start.shape
+    shape = jnp.broadcast_shapes(start.shape, sx.shape)
 
-    def level(carry, _):
-        cur, done, found, sel = carry
+    def level(c):
+        cur = jnp.maximum(c, 0)
         tab = table[cur]  # (..., 11)
         lx, ly = sx - tab[..., 9], sy - tab[..., 10]
         best = jnp.full(shape, jnp.inf, dtype)
         k = jnp.zeros(shape, jnp.int32)
         for j in range(3):
-            a, b, c = tab[..., 3 * j], tab[..., 3 * j + 1], tab[..., 3 * j + 2]
-            ef = a * lx + b * ly + c
+            a, b, e = tab[..., 3 * j], tab[..., 3 * j + 1], tab[..., 3 * j + 2]
+            ef = a * lx + b * ly + e
             slope = dx * a + dy * b
             ex = (ef + slope < 0) & (slope < 0)
             root = jnp.where(ex, ef / jnp.where(ex, -slope, 1.0), jnp.inf)
             better = root < best
             best = jnp.where(better, root, best)
             k = jnp.where(better, j, k)
-        has = best < jnp.inf
         idx = cur * 3 + k
-        is_sil = sil[idx]
-        hit = ~done & has & is_sil
-        sel = jnp.where(hit, idx, sel)
-        found = found | hit
-        done = done | ~has | is_sil
-        cur = jnp.where(done, cur, nbr[idx])
-        return (cur, done, found, sel), None
+        n = nxt[idx]
+        step = jnp.where(best < jnp.inf, jnp.where(n < 0, -2 - idx, n), -1)
+        return jnp.where(c < 0, c, step)
 
-    cur = jnp.maximum(start, 0)
-    init = (cur, ~active, jnp.zeros(shape, bool), cur * 3)
-    if walk == 0:
-        (_, _, found, sel), _ = level(init, None)
-    else:
-        (_, _, found, sel), _ = jax.lax.scan(level, init, None, length=walk + 1)
-    return found, sel
+    c = jnp.where(active, jnp.maximum(start, 0), -1).astype(jnp.int32)
+    c = jax.lax.fori_loop(0, walk + 1, lambda _, c: level(c), c)
+    found = c <= -2
+    return found, jnp.where(found, -2 - c, 0)
 
 
 @jax.checkpoint
