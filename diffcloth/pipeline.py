@@ -70,7 +70,7 @@ def simulate_all(scene, params=None) -> tuple[physics.ClothState, tuple]:
     """Cloth and rigid-body trajectories: (ClothState with leaves (num_frames, rows, cols, 3),
     tuple of RigidBody with a leading num_frames axis; empty without bodies).
 
-    Differentiated as `scene.sim.gradient` says ([sim] gradient): "auto" (default) computes the
+    Differentiated as `scene.sim.gradient` says ([sim] gradient; default "reverse"): "auto" computes the
     trajectory's derivative by forward sensitivities (`physics.sensitivity.mixed_mode`) when at
     most 2 scalars of the physics inputs are differentiated (e.g. a fit's material parameters)
     and the Jacobian fits 256 MB, else in reverse mode; "forward" / "reverse" force one of them.

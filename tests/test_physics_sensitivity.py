@@ -166,7 +166,7 @@ def test_gradient_setting_is_read_and_checked():
     raw["sim"]["gradient"] = "forward"
     sc = scene.build_scene(cfg.parse_config(raw))
     assert sc.sim.gradient == "forward"
-    assert scene.build_scene(cfg.parse_config(tomllib.loads(SMALL))).sim.gradient == "auto"
+    assert scene.build_scene(cfg.parse_config(tomllib.loads(SMALL))).sim.gradient == "reverse"
     raw["sim"]["gradient"] = "sideways"
     with pytest.raises(cfg.ConfigError, match=r"\[sim\] gradient.*auto.*forward.*reverse"):
         cfg.parse_config(raw)

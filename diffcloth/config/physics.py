@@ -97,7 +97,7 @@ class SimConfig:
     newton_iters: int = 3
     cg_iters: int = 200
     cg_tol: float = 1e-5
-    gradient: str = "auto"
+    gradient: str = "reverse"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -53,7 +53,7 @@ class SimSettings:
       gradient: static, how the pipeline differentiates the rollout (`physics.sensitivity`):
         "forward" carries the tangents of the differentiated inputs along the rollout (forward
         sensitivities, cheap for a few scalar parameters), "reverse" replays it backwards
-        (checkpointed), "auto" (default) picks forward when at most 2 scalars are
+        (checkpointed), "reverse" is the default; "auto" picks forward when at most 2 scalars are
         differentiated and their Jacobian fits 256 MB, else reverse.
     """
 
@@ -67,7 +67,7 @@ class SimSettings:
     cg_iters: int = dataclasses.field(default=200, metadata={"static": True})
     cg_tol: float = dataclasses.field(default=1e-5, metadata={"static": True})
     friction_rule: str = dataclasses.field(default="auto", metadata={"static": True})
-    gradient: str = dataclasses.field(default="auto", metadata={"static": True})
+    gradient: str = dataclasses.field(default="reverse", metadata={"static": True})
 
     @property
     def h(self):
@@ -102,7 +102,7 @@ def make_sim(
     cg_iters: int = 200,
     cg_tol: float = 1e-5,
     friction_rule: str = "auto",
-    gradient: str = "auto",
+    gradient: str = "reverse",
     dtype=None,
 ) -> SimSettings:
     """Validated constructor for SimSettings (see its attributes).
