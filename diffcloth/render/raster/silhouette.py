@@ -41,7 +41,9 @@ def _walk(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: i
     (four carries ran about nine small fusions per level; unrolled, XLA's fusion recomputes
     the levels' chains inside each other)."""
     dtype = s.edge.dtype
-    table = materialize(jax.lax.stop_gradient(jnp.concatenate([s.edge, s.origin], axis=-1)))
+    if s.table is None:
+        table = materialize(jnp.concatenate([s.edge, s.vdepth, s.origin], axis=-1))
+    table = jax.lax.stop_gradient(table if s.table is None else s.table)  # origin at 12, 13
     # the triangle across each flat edge, -1 where the edge is a silhouette (the walk stops)
     nxt = materialize(jnp.where(sil, -1, nbr).astype(jnp.int32))
     one = jnp.ones((), dtype)
@@ -55,8 +57,8 @@ def _walk(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: i
 
     def level(c):
         cur = jnp.maximum(c, 0)
-        tab = table[cur]  # (..., 11)
-        lx, ly = sx - tab[..., 9], sy - tab[..., 10]
+        tab = table[cur]  # (..., 14)
+        lx, ly = sx - tab[..., 12], sy - tab[..., 13]
         best = jnp.full(shape, jnp.inf, dtype)
         k = jnp.zeros(shape, jnp.int32)
         for j in range(3):
