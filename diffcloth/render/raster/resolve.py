@@ -37,13 +37,16 @@ def _resolve(s: _Setup, ids, camera: Camera, neighbors, walk: int, budget: int |
     depth = bary[..., 0] * dv[..., 0] + bary[..., 1] * dv[..., 1] + bary[..., 2] * dv[..., 2]
     depth = materialize(jnp.where(ok, depth, BACKGROUND_DEPTH))
     ok = materialize(ok)
-    cross = _crossings(s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk, budget)
+    cross, weights = _crossings(
+        s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk, budget
+    )
     return Fragments(
         triangle_id=materialize(jnp.where(ok, ids, -1).astype(jnp.int32)),
         barycentric=bary,
         depth=depth,
         crossings=materialize(cross.astype(dtype)),
         front_facing=materialize(ok & s.front[tri]),
+        weights=weights.astype(dtype),
     )
 
 
