@@ -24,6 +24,9 @@ class Fragments(NamedTuple):
       this pair direction's share of the edge's blend (`coverage.pair_share`); differentiable.
       (A (4,) array without the slopes is read as k = 0, an (8,) one as share 1.)
     front_facing: bool, True where the visible triangle is counter-clockwise on screen.
+    weights: (4, H, W) `antialias_weights` of these crossings, computed by the silhouette search
+      per pair (cheaper than from the per-pixel crossings: `antialias` reads them when present;
+      jit then drops the unused crossings), or None.
     """
 
     triangle_id: jax.Array
@@ -31,6 +34,7 @@ class Fragments(NamedTuple):
     depth: jax.Array
     crossings: jax.Array
     front_facing: jax.Array
+    weights: jax.Array | None = None
 
 
 class GBuffer(NamedTuple):
@@ -43,6 +47,8 @@ class GBuffer(NamedTuple):
     crossings: (12,) silhouette crossings toward (+x, -x, +y, -y) neighbours, the edges'
       slopes and the pair directions' shares (see Fragments).
     front_facing: bool, True where the visible side faces the camera.
+    weights: (4, H, W) antialiasing weights of one rasterized mesh (see Fragments) or None
+      (composited buffers: `antialias` computes them from the crossings).
     """
 
     attributes: dict
@@ -51,3 +57,4 @@ class GBuffer(NamedTuple):
     surface_id: jax.Array
     crossings: jax.Array
     front_facing: jax.Array
+    weights: jax.Array | None = None

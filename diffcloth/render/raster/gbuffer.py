@@ -28,7 +28,7 @@ def antialias(color, buffer, weights=None):
       (H, W, C) colour where each pixel pair straddling a silhouette is blended by how far the edge
       lies from the pixel midline. Converges to `color` as pixels shrink.
     """
-    w = antialias_weights(buffer, color.dtype) if weights is None else weights
+    w = antialias_weights(buffer, color.dtype) if weights is None else weights.astype(color.dtype)
     nb = [
         jnp.pad(color[:, 1:], ((0, 0), (0, 1), (0, 0))),
         jnp.pad(color[:, :-1], ((0, 0), (1, 0), (0, 0))),
@@ -50,6 +50,8 @@ def antialias_weights(buffer, dtype):
       buffer: Fragments or GBuffer (uses the id, depth and crossings).
       dtype: float dtype of the weights (the colour's).
     """
+    if buffer.weights is not None:  # computed by the rasterizer's silhouette search
+        return buffer.weights.astype(dtype)
     ids = buffer.triangle_id if isinstance(buffer, Fragments) else buffer.surface_id
     depth = jax.lax.stop_gradient(buffer.depth)
     cross = buffer.crossings.astype(dtype)
@@ -137,6 +139,7 @@ def rasterize_gbuffer(
         surface_id=frags.triangle_id,
         crossings=frags.crossings,
         front_facing=frags.front_facing,
+        weights=frags.weights,
     )
 
 

@@ -39,7 +39,7 @@ def _resolve(
     depth = bary[..., 0] * dv[..., 0] + bary[..., 1] * dv[..., 1] + bary[..., 2] * dv[..., 2]
     depth = materialize(jnp.where(ok, depth, BACKGROUND_DEPTH))
     ok = materialize(ok)
-    cross = _crossings(
+    cross, weights = _crossings(
         s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk, budget, batch_axes
     )
     return Fragments(
@@ -48,6 +48,7 @@ def _resolve(
         depth=depth,
         crossings=materialize(cross.astype(dtype)),
         front_facing=materialize(ok & s.front[tri]),
+        weights=weights.astype(dtype),
     )
 
 

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from diffcloth._math import materialize, safe_div
-from diffcloth.render.coverage import pair_share
+from diffcloth.render.coverage import edge_coverage, pair_share
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH
 from diffcloth.render.raster.scan import _batch_max, _compact
 from diffcloth.render.raster.triangle_setup import _Setup
@@ -34,9 +34,16 @@ def _reach(s: _Setup, neighbors, walk: int):
 
 def _walk(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: int):
     """`_search`'s walk, without gradient: (found, sel) per pair, sel the flat index
-    3 * triangle + k of the silhouette edge found (anything where none is)."""
+    3 * triangle + k of the silhouette edge found (0 where none is).
+
+    The walk+1 levels loop over one int32 state per pair (c >= 0: the triangle being crossed;
+    -1: stopped without a silhouette; -2 - sel: found edge sel): a level is one or two fusions
+    (four carries ran about nine small fusions per level; unrolled, XLA's fusion recomputes
+    the levels' chains inside each other)."""
     dtype = s.edge.dtype
     table = materialize(jax.lax.stop_gradient(jnp.concatenate([s.edge, s.origin], axis=-1)))
+    # the triangle across each flat edge, -1 where the edge is a silhouette (the walk stops)
+    nxt = materialize(jnp.where(sil, -1, nbr).astype(jnp.int32))
     one = jnp.ones((), dtype)
     ux = jnp.where(vertical, 0.0, one)
     uy = jnp.where(vertical, one, 0.0)
@@ -44,44 +51,32 @@ def _walk(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: i
     sy = py + jnp.where(a_front, 0.0, uy)
     sgn = jnp.where(a_front, one, -one)
     dx, dy = sgn * ux, sgn * uy  # direction from front to back
-    shape = start.shape
+    shape = jnp.broadcast_shapes(start.shape, sx.shape)
 
-    def level(carry, _):
-        cur, done, found, sel = carry
+    def level(c):
+        cur = jnp.maximum(c, 0)
         tab = table[cur]  # (..., 11)
         lx, ly = sx - tab[..., 9], sy - tab[..., 10]
         best = jnp.full(shape, jnp.inf, dtype)
         k = jnp.zeros(shape, jnp.int32)
         for j in range(3):
-            a, b, c = tab[..., 3 * j], tab[..., 3 * j + 1], tab[..., 3 * j + 2]
-            ef = a * lx + b * ly + c
+            a, b, e = tab[..., 3 * j], tab[..., 3 * j + 1], tab[..., 3 * j + 2]
+            ef = a * lx + b * ly + e
             slope = dx * a + dy * b
             ex = (ef + slope < 0) & (slope < 0)
             root = jnp.where(ex, ef / jnp.where(ex, -slope, 1.0), jnp.inf)
             better = root < best
             best = jnp.where(better, root, best)
             k = jnp.where(better, j, k)
-        # the edge crossed (-1: none), materialized once: each of the carry's four updates
-        # otherwise redoes the three edge tests in its own fusion (main job's 10 images at
-        # 64^2: forward render 0.69x)
-        idx = materialize(jnp.where(best < jnp.inf, cur * 3 + k, -1))
-        has = idx >= 0
-        idx = jnp.maximum(idx, 0)
-        is_sil = sil[idx]
-        hit = ~done & has & is_sil
-        sel = jnp.where(hit, idx, sel)
-        found = found | hit
-        done = done | ~has | is_sil
-        cur = jnp.where(done, cur, nbr[idx])
-        return (cur, done, found, sel), None
+        idx = cur * 3 + k
+        n = nxt[idx]
+        step = jnp.where(best < jnp.inf, jnp.where(n < 0, -2 - idx, n), -1)
+        return jnp.where(c < 0, c, step)
 
-    cur = jnp.maximum(start, 0)
-    init = (cur, ~active, jnp.zeros(shape, bool), cur * 3)
-    if walk == 0:
-        (_, _, found, sel), _ = level(init, None)
-    else:
-        (_, _, found, sel), _ = jax.lax.scan(level, init, None, length=walk + 1)
-    return found, sel
+    c = jnp.where(active, jnp.maximum(start, 0), -1).astype(jnp.int32)
+    c = jax.lax.fori_loop(0, walk + 1, lambda _, c: level(c), c)
+    found = c <= -2
+    return found, jnp.where(found, -2 - c, 0)
 
 
 @jax.checkpoint
@@ -112,7 +107,21 @@ def _edge_crossing(s: _Setup, found, sel, a_front, vertical, px, py):
     found = found & (jax.lax.stop_gradient(share) > 0)
     t = jnp.where(found, jnp.clip(safe_div(ef, jnp.where(found, slope, 1.0)), 0.0, 1.0), -1.0)
     k = jnp.where(found, jnp.clip(safe_div(across, jnp.where(found, along, 1.0)), 0.0, 1.0), 0.0)
-    return t, k, jnp.where(found, share, 0.0)
+    share = jnp.where(found, share, 0.0)
+    return (t, k, share) + _pair_weights(t, k, share, a_front)
+
+
+def _pair_weights(t, k, share, a_front):
+    """`antialias` weights of a pixel pair (a, b) from its crossing (t, k, share) (t < 0: none):
+    (w_a, w_b), a's move toward b's colour and b's toward a's. The front pixel moves toward the
+    back colour by its uncovered area 1 - A(t), the back pixel toward the front colour by its
+    covered area A(t - 1), A the exact coverage by the straight edge of slope k
+    (`edge_coverage`; k = 0 gives nvdiffrast's 1/2 - t on the front pixel when t < 1/2, else
+    t - 1/2 on the back one); both scaled by this pair direction's share of the edge."""
+    ok = jax.lax.stop_gradient(t) >= 0
+    wf = jnp.where(ok, share * (1.0 - edge_coverage(t, k)), 0.0)
+    wb = jnp.where(ok, share * edge_coverage(t - 1.0, k), 0.0)
+    return jnp.where(a_front, wf, wb), jnp.where(a_front, wb, wf)
 
 
 def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: int):
@@ -123,7 +132,8 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
     fraction t in [0, 1] from the front pixel's centre toward the back one's where the silhouette
     edge is crossed (differentiable), -1 where none is found or the edge belongs to the other
     pair direction; the edge's slope k in [0, 1] relative to the pair direction (0 where none);
-    and this pair direction's share of the edge (`pair_share`, 0 where none).
+    this pair direction's share of the edge (`pair_share`, 0 where none); and the pair's
+    antialiasing weights (w_a, w_b) (`_pair_weights`).
     """
     found, sel = _walk(s, sil, nbr, start, active, a_front, vertical, px, py, walk)
     return _edge_crossing(s, found, sel, a_front, vertical, px, py)
@@ -180,10 +190,14 @@ def _pairs(s: _Setup, tri, ok, depth, neighbors, walk: int):
 def _crossings(
     s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: int | None, batch_axes=()
 ):
-    """(H, W, 12): fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
+    """Silhouette crossings (H, W, 12) and antialiasing weights (4, H, W).
+
+    Crossings: fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
     silhouette lies, set only on the nearer pixel of each neighbouring pair showing different
     triangles (-1 elsewhere), then the slopes of those edges and the pair direction's share of
-    each (0 elsewhere).
+    each (0 elsewhere). Weights: `antialias_weights` of these crossings, computed per searched
+    pair (a consumer that reads only the weights, as `antialias` does, never builds the
+    per-pixel crossings: jit removes them).
 
     Walks from the front pixel's triangle across internal edges (up to `walk` further triangles)
     along the segment to the neighbour's centre and stops at the first silhouette edge. Only
@@ -193,49 +207,69 @@ def _crossings(
     found is recomputed differentiably.
     """
     H, W = tri.shape
+    n = 2 * H * W
     sil, nbr, start, active, a_front = _pairs(s, tri, ok, depth, neighbors, walk)
     vertical = jnp.arange(2)[:, None, None] == 1
 
     def full(_):
-        return _search(s, sil, nbr, start, active, a_front, vertical, X[None], Y[None], walk)
+        t, k, share, w_a, w_b = _search(
+            s, sil, nbr, start, active, a_front, vertical, X[None], Y[None], walk
+        )
+        # w_a on the pair's first pixel (+x / +y slot), w_b on its partner (-x / -y slot)
+        weights = jnp.stack(
+            [
+                w_a[0],
+                jnp.pad(w_b[0, :, :-1], ((0, 0), (1, 0))),
+                w_a[1],
+                jnp.pad(w_b[1, :-1], ((1, 0), (0, 0))),
+            ]
+        )
+        return t, k, share, weights
 
-    n = 2 * H * W
     K = n if budget is None else min(int(budget), n)
 
     def compact(K):
-        flat = active.reshape(-1)
-        idx, act = _compact(flat, K)
+        idx, act = _compact(active.reshape(-1), K)
         rem = idx % (H * W)
         py = (rem // W).astype(depth.dtype)
         px = (rem % W).astype(depth.dtype)
-        t = _search(
+        vert = idx >= H * W
+        t, k, share, w_a, w_b = _search(
             s,
             sil,
             nbr,
             start.reshape(-1)[idx],
             act,
             a_front.reshape(-1)[idx],
-            idx >= H * W,
+            vert,
             px,
             py,
             walk,
         )
-        t, k, share = t
         at = jnp.where(act, idx, n)
         out = jnp.full((n,), -1.0, t.dtype).at[at].set(t, mode="drop")
         out_k = jnp.zeros((n,), k.dtype).at[at].set(k, mode="drop")
         out_s = jnp.zeros((n,), share.dtype).at[at].set(share, mode="drop")
-        return out.reshape(2, H, W), out_k.reshape(2, H, W), out_s.reshape(2, H, W)
+        # weights (4, H, W) flat: w_a at slot 2 d of the pixel, w_b at slot 2 d + 1 of the partner
+        wa_at = jnp.where(act, idx + vert * (H * W), 2 * n)
+        wb_at = jnp.where(act, idx + (vert + 1) * (H * W) + jnp.where(vert, W, 1), 2 * n)
+        weights = (
+            jnp.zeros((2 * n,), w_a.dtype)
+            .at[jnp.concatenate([wa_at, wb_at])]
+            .set(jnp.concatenate([w_a, w_b]), mode="drop")
+        )
+        dense = (out.reshape(2, H, W), out_k.reshape(2, H, W), out_s.reshape(2, H, W))
+        return dense + (weights.reshape(4, H, W),)
 
     # compacted lists of K and 4 K pairs (a frame whose silhouettes need more than K pairs,
     # e.g. walk 8 on a cloth seen at a grazing angle, stays far below the full search's cost)
     sizes = [b for b in (K, 4 * K) if b < n]
     if not sizes:
-        t, k, share = full(None)
+        t, k, share, weights = full(None)
     else:
         level = _batch_max(jnp.sum(jnp.sum(active) > jnp.asarray(sizes)), batch_axes)
         branches = [lambda _, b=b: compact(b) for b in sizes] + [full]
-        t, k, share = jax.lax.switch(level, branches, None)
+        t, k, share, weights = jax.lax.switch(level, branches, None)
 
     def slots(v, none):
         v_a = jnp.where(a_front, v, none)  # stored on this pixel (+x / +y slot)
@@ -244,4 +278,5 @@ def _crossings(
         minus_y = jnp.pad(v_b[1, :-1], ((1, 0), (0, 0)), constant_values=none)
         return [v_a[0], minus_x, v_a[1], minus_y]
 
-    return jnp.stack(slots(t, -1.0) + slots(k, 0.0) + slots(share, 0.0), axis=-1)
+    cross = jnp.stack(slots(t, -1.0) + slots(k, 0.0) + slots(share, 0.0), axis=-1)
+    return cross, weights
