@@ -446,7 +446,10 @@ def render(
         # computed once: fused into antialias's shifted neighbour reads, the shading (texture
         # gathers, bump maps) would be recomputed for each neighbour and channel (with the
         # materializations in shade: minnaert render 265 -> 46 ms at 256^2, benchmarks/shading.py)
-        img = antialias(materialize(img), buf)
+        # the antialiased image and the sphere's weight in front are materialized too: the
+        # compositing below reads each pixel's alpha in every channel, and fused it recomputed
+        # the neighbour blend and the fringe depth test per channel (frame 0.96x, phong 256^2)
+        img = materialize(antialias(materialize(img), buf))
     if boxes is not None:  # the extra channel: coverage of the cloth alone
         img, cloth_mask = img[..., :4], img[..., 4]
     else:
@@ -463,6 +466,7 @@ def render(
         front = layer_in_front(
             buf.surface_id >= 0, buf.depth, sphere_depth, pixel, camera.is_perspective
         )[..., None]
+        front = materialize(front)
         over = sphere_rgba + (1.0 - sphere_rgba[..., 3:]) * img  # sphere over cloth
         under = img + (1.0 - img[..., 3:]) * sphere_rgba  # cloth over sphere
         blend = under + front * (over - under)

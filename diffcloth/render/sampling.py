@@ -175,12 +175,21 @@ def sample_mip(pyramid, uv, lod, *, wrap="repeat"):
     frac = (lod - lo)[..., None]  # weight of the coarser level (differentiable in lod)
     lo = lo.astype(jnp.int32)
 
+    # mip_pyramid halves both sides per level: level k's size and offset are then shifts of the
+    # base size (no per-pixel gathers from the small size / offset tables)
+    halving = all((sizes[k] == sizes[0] >> k).all() for k in range(len(sizes)))
+    h0, w0 = int(sizes[0, 0]), int(sizes[0, 1])
+
     def level(k):
-        h, w, off = (
-            jnp.asarray(sizes[:, 0])[k],
-            jnp.asarray(sizes[:, 1])[k],
-            jnp.asarray(offsets)[k],
-        )
+        if halving:  # offset = sum_{j<k} h0 w0 / 4^j = 4 (h0 w0 - h0 w0 / 4^k) / 3, exact
+            h, w = jnp.right_shift(h0, k), jnp.right_shift(w0, k)
+            off = (4 * (h0 * w0 - jnp.right_shift(h0 * w0, 2 * k))) // 3
+        else:
+            h, w, off = (
+                jnp.asarray(sizes[:, 0])[k],
+                jnp.asarray(sizes[:, 1])[k],
+                jnp.asarray(offsets)[k],
+            )
         return _bilinear_quad(flat, lambda yi, xi: off + yi * w + xi, h, w, c, uv, wrap_u, wrap_v)
 
     fine = level(lo)

@@ -65,6 +65,7 @@ def _sphere_layer(
         point = jnp.where(
             hit[..., None], origins + jnp.where(hit, t, 0.0)[..., None] * dirs, rim_point
         )
+        point = materialize(point)  # read by the depth and per channel by the normal
         _, depth = project(point, camera)
         return alpha, jnp.where(alpha > 0, depth, big), point, _normalize3(point - c)
 

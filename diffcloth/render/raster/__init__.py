@@ -64,6 +64,12 @@ materialized (a scatter) before per-pixel gathers: XLA's CPU fusion otherwise re
 for every pixel. A/B against the previous version, same process, CPU time per call (median /
 min, load ~14): 256 x 256 forward 43 / 34 -> 20 / 18 ms, forward + backward 55 / 52 -> 36 / 33 ms;
 512 x 512 forward 241 / 195 -> 98 / 87 ms, forward + backward 317 / 260 -> 190 / 154 ms. Images identical.
+The antialiasing weights are computed per searched pair in the compact list and scattered into
+(4, H, W) (`Fragments.weights`; `antialias` reads them, so jit drops the per-pixel crossings);
+the walk keeps one int32 state per pair; `_compact` ranks by word popcounts; the setup is two
+materialized tables. A/B against the previous version, same process, 256 x 256 Mitsuba drape,
+30 interleaved rounds on the loaded 2-core machine: forward 0.81x (median; min 0.72x, CPU time
+0.83x), forward + backward 0.73x (min 0.72x, CPU 0.74x). Images and gradients bitwise equal.
 """
 
 # ruff: noqa: F401  (re-exports: every name stays importable from diffcloth.render.raster)
@@ -81,6 +87,7 @@ from diffcloth.render.raster.silhouette import (
     _STEPS,
     _crossings,
     _edge_crossing,
+    _pair_weights,
     _pairs,
     _reach,
     _search,

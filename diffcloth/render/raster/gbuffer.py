@@ -20,8 +20,8 @@ def antialias(color, buffer, weights=None):
     Args:
       color: (H, W, C) image computed from the buffer (e.g. interpolated or shaded colour,
         with background filled in).
-      buffer: Fragments or GBuffer (uses the id, depth and crossings); unused when `weights`
-        is given.
+      buffer: Fragments or GBuffer (its `weights` when the rasterizer computed them, else the
+        id, depth and crossings); unused when `weights` is given.
       weights: optional (4, H, W) `antialias_weights(buffer, color.dtype)`, computed once for
         a static geometry and camera (e.g. by `render.prepare_frame`).
     Returns:
@@ -44,7 +44,8 @@ def antialias(color, buffer, weights=None):
 def antialias_weights(buffer, dtype):
     """(4, H, W) weight of each pixel's move toward its right / left / lower / upper
     neighbour's colour in `antialias` (0 away from silhouettes); differentiable through the
-    buffer's crossings. Depends on the geometry and camera only.
+    buffer's crossings. Depends on the geometry and camera only. A rasterizer's buffer
+    carries them already (`Fragments.weights`, computed per searched pair): returned as they are.
 
     Args:
       buffer: Fragments or GBuffer (uses the id, depth and crossings).

@@ -11,7 +11,12 @@ from diffcloth.render.camera import Camera
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH, Fragments
 from diffcloth.render.raster.silhouette import _crossings, _pairs, default_silhouette_budget
 from diffcloth.render.raster.topology import edge_neighbors
-from diffcloth.render.raster.triangle_setup import _Setup, _setup, default_max_tiles
+from diffcloth.render.raster.triangle_setup import (
+    _materialized,
+    _Setup,
+    _setup,
+    default_max_tiles,
+)
 from diffcloth.render.raster.visibility import _visibility
 
 
@@ -112,7 +117,7 @@ def rasterize(
         neighbors = edge_neighbors(faces)
     if max_tiles is None:
         max_tiles = default_max_tiles(faces.shape[0], camera.width, camera.height, tile_size)
-    s = _Setup(*map(materialize, _setup(positions, faces, camera, cull_backfaces, triangle_mask)))
+    s = _materialized(_setup(positions, faces, camera, cull_backfaces, triangle_mask))
     batch_axes = tuple(batch_axes)
     ids = _visibility(s, camera, tile_size, max_tiles, batch_axes)
     if silhouette_budget is None:

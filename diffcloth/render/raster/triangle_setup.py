@@ -9,6 +9,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from diffcloth._math import materialize
 from diffcloth.render.camera import Camera, project
 
 
@@ -34,6 +35,20 @@ class _Setup(NamedTuple):
     front: jax.Array  # (m,) bool: counter-clockwise on screen
     bbox: jax.Array  # (m, 4) int32 x0, y0, x1, y1 inclusive pixel range (clamped)
     origin: jax.Array  # (m, 2) integer pixel origin of the edge functions (no gradient)
+    table: jax.Array | None = None  # (m, 14) edge, vdepth, origin in one buffer (`_materialized`)
+
+
+def _materialized(s: _Setup) -> _Setup:
+    """`s` computed once into two buffers (floats: edge, vdepth, origin, also kept as `table`
+    for the per-pixel and per-window gathers; ints: bbox, valid, front), its fields slices of
+    them: XLA's fusion would otherwise recompute the setup inside each consumer, and one
+    materialization per field cost two launches and a pass each."""
+    table = materialize(jnp.concatenate([s.edge, s.vdepth, s.origin.astype(s.edge.dtype)], -1))
+    flags = jnp.stack([s.valid, s.front], axis=-1).astype(jnp.int32)
+    ints = materialize(jnp.concatenate([s.bbox, flags], axis=-1))
+    origin = jax.lax.stop_gradient(table[:, 12:])  # no tangent (as `_setup`'s): none computed
+    valid, front = ints[:, 4] > 0, ints[:, 5] > 0
+    return _Setup(table[:, :9], table[:, 9:12], valid, front, ints[:, :4], origin, table)
 
 
 def _setup(positions, faces, camera: Camera, cull_backfaces: bool, mask=None) -> _Setup:

@@ -104,7 +104,10 @@ def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int, batch_axes
 
     nx, ntiles = _tile_counts(s, tile)
     ends = _cumsum(jnp.where(direct, 0, ntiles))
-    ftab = materialize(jnp.concatenate([E, dep, s.origin.astype(E.dtype)], axis=-1))
+    if s.table is None:
+        ftab = materialize(jnp.concatenate([E, dep, s.origin.astype(E.dtype)], axis=-1))
+    else:
+        ftab = jax.lax.stop_gradient(s.table)
     itab = materialize(jnp.concatenate([s.bbox, nx[:, None]], axis=-1))
 
     def pass_(budget):
