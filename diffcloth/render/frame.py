@@ -213,6 +213,7 @@ def surface_gbuffer(
     boxes: BoxPoses | None = None,
     triangle_mask=None,
     sky: SkyMaps | None = None,
+    batch_axes: tuple = (),
 ):
     """Rasterize a Surface into the shader's per-pixel inputs.
 
@@ -227,6 +228,7 @@ def surface_gbuffer(
       normals, bitangents, face normals and the back side's vertex lighting. With `boxes`, their
       triangles are rasterized with the surface (ids >= the surface's face count).
       triangle_mask: optional (m,) bool over the surface's faces; False drops a triangle.
+      batch_axes: the vmap axis names this call runs under (see `raster.rasterize`).
     """
     neighbors = _grid_neighbors(surface)
     if boxes is not None:
@@ -265,6 +267,7 @@ def surface_gbuffer(
         cull_backfaces=cull_backfaces,
         triangle_mask=triangle_mask,
         max_tiles=max_tiles,
+        batch_axes=batch_axes,
     )
     a = buf.attributes
     mask = buf.mask.astype(pos.dtype)
@@ -324,6 +327,7 @@ def render(
     shadow_maps: ShadowMaps | None = None,
     ambient_occlusion: int = 0,
     sky_maps: SkyMaps | None = None,
+    batch_axes: tuple = (),
 ):
     """Rasterize, shade and composite a cloth surface.
 
@@ -364,6 +368,9 @@ def render(
       return_cloth_mask: also return the visible cloth coverage (H, W) in [0, 1]: the antialiased
         cloth alpha (soft at silhouettes, so differentiable w.r.t. the geometry there) times the
         part of each pixel not covered by a sphere or plane drawn in front. The image is unchanged.
+      batch_axes: names of the vmap axes this call runs under (e.g. `pipeline.render_frames`'
+        frames and cameras): the rasterizer's work budgets then suit the batch's largest image
+        and one branch runs for all (`raster.rasterize`).
     Shadows: lights whose `shadows` flag is set (see `make_lights`) are occluded by the cloth
       (plus `occluders`) through a shadow map and by `spheres` analytically, on the cloth, the
       spheres and the planes (`diffcloth.render.shadows`). Without shadow-casting lights no
@@ -408,6 +415,7 @@ def render(
         boxes=boxes,
         triangle_mask=_object_mask(surface, camera) if cull else None,
         sky=sky,
+        batch_axes=batch_axes,
     )
     img = shade(
         gb,

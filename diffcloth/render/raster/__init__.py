@@ -18,12 +18,14 @@ Pipeline (everything pure JAX; jit, vmap and grad work; no Python loops over pix
    tile_size x tile_size pixel windows covering their box, allocated by a prefix sum from a
    static budget: the smallest of `window_budgets` (1/8 or 1 screen of windows, else
    `max_tiles`, default: triangles + 2 full screens of windows) that holds the frame's
-   windows (lax.switch; under vmap every budget runs). `.at[].min` scatters the candidates'
-   depths into a z-buffer, and a second
-   `.at[].max` scatter of the triangle id among candidates that equal the z-buffer depth resolves
-   the id (ties: larger id). The bounding box of a triangle crossing the near plane is that of
-   its part in front of it (vertices and edge/near-plane intersections). Windows beyond the
-   budget are dropped (`required_tiles` tells how many a scene needs).
+   windows (lax.switch; under a vmap whose axes are named in `batch_axes` the smallest that
+   holds every image's windows, pmax over the batch, else every budget runs; below 128 x 128
+   only `max_tiles`). `.at[].min` scatters the candidates' depths into a
+   z-buffer, and a second `.at[].max` scatter of the triangle id among candidates that equal
+   the z-buffer depth resolves the id (ties: larger id). The bounding box of a triangle
+   crossing the near plane is that of its part in front of it (vertices and edge/near-plane
+   intersections). Windows beyond the budget are dropped (`required_tiles` tells how many a
+   scene needs).
 3. Differentiable resolve: with the visible triangle per pixel fixed, barycentrics and depth are
    recomputed from the positions, so attributes interpolate with gradients w.r.t. attributes and
    vertex positions (interior gradients).
@@ -54,7 +56,8 @@ found slope (`coverage.edge_coverage`; nvdiffrast's |t - 1/2| is its perpendicul
 The silhouette search runs only on pairs whose front triangle has a silhouette
 edge within reach (1,616 of 131,072 pairs at 256 x 256, 4,249 of 524,288 at 512 x 512),
 compacted by a log-depth scan into a static list (`silhouette_budget`, H W / 16), a second
-one of 4 x that size and a full-image fallback, chosen by lax.switch (the wavy cloth of
+one of 4 x that size and a full-image fallback, chosen by lax.switch (one for the whole batch
+under named vmap axes, as for the windows; not below 128 x 128) (the wavy cloth of
 benchmarks/render.py needs 6,139 pairs at 256 x 256 with walk 8: it ran the full search, now
 the second list: forward 0.31x, forward + backward 0.67x). Per-triangle tables are
 materialized (a scatter) before per-pixel gathers: XLA's CPU fusion otherwise recomputes them

@@ -110,6 +110,7 @@ def rasterize_gbuffer(
     tile_size: int = 2,
     max_tiles: int | None = None,
     silhouette_budget: int | None = None,
+    batch_axes: tuple = (),
 ) -> GBuffer:
     """Rasterize a mesh and interpolate named per-vertex attributes into a GBuffer.
 
@@ -129,6 +130,7 @@ def rasterize_gbuffer(
         tile_size=tile_size,
         max_tiles=max_tiles,
         silhouette_budget=silhouette_budget,
+        batch_axes=batch_axes,
     )
     attrs = {k: interpolate(v, frags, faces) for k, v in attributes.items()}
     return GBuffer(

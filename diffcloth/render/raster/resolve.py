@@ -20,7 +20,9 @@ from diffcloth.render.raster.triangle_setup import (
 from diffcloth.render.raster.visibility import _visibility
 
 
-def _resolve(s: _Setup, ids, camera: Camera, neighbors, walk: int, budget: int | None):
+def _resolve(
+    s: _Setup, ids, camera: Camera, neighbors, walk: int, budget: int | None, batch_axes=()
+):
     H, W = camera.height, camera.width
     dtype = s.edge.dtype
     ids = ids.reshape(H, W)
@@ -43,7 +45,7 @@ def _resolve(s: _Setup, ids, camera: Camera, neighbors, walk: int, budget: int |
     depth = materialize(jnp.where(ok, depth, BACKGROUND_DEPTH))
     ok = materialize(ok)
     cross, weights = _crossings(
-        s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk, budget
+        s, tri, ok, jax.lax.stop_gradient(depth), X, Y, neighbors, walk, budget, batch_axes
     )
     return Fragments(
         triangle_id=materialize(jnp.where(ok, ids, -1).astype(jnp.int32)),
@@ -67,6 +69,7 @@ def rasterize(
     max_tiles: int | None = None,
     silhouette_walk: int = 8,
     silhouette_budget: int | None = None,
+    batch_axes: tuple = (),
 ) -> Fragments:
     """Visible triangle, perspective-correct barycentrics and depth for every pixel.
 
@@ -89,6 +92,11 @@ def rasterize(
         frame needs more, a list of 4 x the budget, then a full-image search runs instead (same
         result, slower; under vmap all run). >= 2 H W: always the full-image search (compiles
         once, not three times).
+      batch_axes: names of the `vmap` axes this call runs under (e.g. `pipeline.render_frames`'
+        frames and cameras; static). Each work budget (windows, silhouette list) is then the
+        smallest that holds every image of the batch (`lax.pmax` over these axes), so one branch
+        of each `lax.switch` runs for the batch; unnamed, a batched switch runs every branch.
+        Images are the same either way.
     Returns:
       Fragments.
     """
@@ -110,12 +118,13 @@ def rasterize(
     if max_tiles is None:
         max_tiles = default_max_tiles(faces.shape[0], camera.width, camera.height, tile_size)
     s = _materialized(_setup(positions, faces, camera, cull_backfaces, triangle_mask))
-    ids = _visibility(s, camera, tile_size, max_tiles)
+    batch_axes = tuple(batch_axes)
+    ids = _visibility(s, camera, tile_size, max_tiles, batch_axes)
     if silhouette_budget is None:
         silhouette_budget = default_silhouette_budget(camera.width, camera.height)
     if int(silhouette_budget) < 0:
         raise ValueError(f"silhouette_budget must be >= 0, got {silhouette_budget}")
-    return _resolve(s, ids, camera, neighbors, silhouette_walk, silhouette_budget)
+    return _resolve(s, ids, camera, neighbors, silhouette_walk, silhouette_budget, batch_axes)
 
 
 def silhouette_pairs(

@@ -38,3 +38,12 @@ def _compact(flags, size: int):
         .set(jnp.arange(n, dtype=jnp.int32), mode="drop")
     )
     return idx, jnp.arange(size) < upto[-1]
+
+
+def _batch_max(x, batch_axes: tuple):
+    """x's maximum over the named vmap axes `batch_axes` (x itself when there are none).
+
+    A work-budget index reduced so is the same for every image of a batch: `lax.switch` on it
+    then stays one conditional that runs one branch (the one the batch's largest image needs),
+    where a batched index would run every branch and select. Shapes: x () int."""
+    return jax.lax.pmax(x, tuple(batch_axes)) if batch_axes else x

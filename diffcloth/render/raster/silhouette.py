@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from diffcloth._math import materialize, safe_div
 from diffcloth.render.coverage import edge_coverage, pair_share
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH
-from diffcloth.render.raster.scan import _compact
+from diffcloth.render.raster.scan import _batch_max, _compact
 from diffcloth.render.raster.triangle_setup import _Setup
 
 _STEPS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # +x, -x, +y, -y
@@ -145,7 +145,9 @@ def default_silhouette_budget(width: int, height: int) -> int:
     """Default size of the compacted silhouette-pair list: H W / 16 (with walk 8 the Mitsuba
     benchmark drape needs H W / 21 at 256 x 256; the wavy cloth of benchmarks/render.py, H W / 11,
     takes the second list of 4 x the budget); below 128 x 128 pixels the full-image search
-    (budget 2 H W) is as cheap and compiles once instead of three times.
+    (budget 2 H W) is as cheap and compiles once instead of three times (also for a batch:
+    see `visibility.window_budgets`; the main job's 64^2 frames need at most 651 of 8,192
+    pairs).
 
     Shapes: none (Python ints).
     """
@@ -187,7 +189,9 @@ def _pairs(s: _Setup, tri, ok, depth, neighbors, walk: int):
     return sil, nbr, start, active, a_front
 
 
-def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: int | None):
+def _crossings(
+    s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: int | None, batch_axes=()
+):
     """Silhouette crossings (H, W, 12) and antialiasing weights (4, H, W).
 
     Crossings: fraction toward the (+x, -x, +y, -y) neighbour's centre where the surface's
@@ -269,7 +273,7 @@ def _crossings(s: _Setup, tri, ok, depth, X, Y, neighbors, walk: int, budget: in
     if not sizes:
         t, k, share, weights = full(None)
     else:
-        level = jnp.sum(jnp.sum(active) > jnp.asarray(sizes))
+        level = _batch_max(jnp.sum(jnp.sum(active) > jnp.asarray(sizes)), batch_axes)
         branches = [lambda _, b=b: compact(b) for b in sizes] + [full]
         t, k, share, weights = jax.lax.switch(level, branches, None)
 

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 
 from diffcloth._math import materialize
 from diffcloth.render.camera import Camera
-from diffcloth.render.raster.scan import _cummax, _cumsum
+from diffcloth.render.raster.scan import _batch_max, _cummax, _cumsum
 from diffcloth.render.raster.triangle_setup import DIRECT_PIXELS, _Setup, _tile_counts
 
 
@@ -64,7 +64,10 @@ def _windows(ftab, itab, ends, W: int, tile: int, budget: int, near, far):
 def window_budgets(width: int, height: int, max_tiles: int, tile_size: int = 2) -> tuple:
     """Static window budgets of the visibility pass, smallest first: an eighth and one screen of
     windows, then `max_tiles`; a frame runs the smallest that holds its windows.
-    Below 128 x 128 pixels only `max_tiles` (as cheap there, and compiled once)."""
+    Below 128 x 128 pixels only `max_tiles` (as cheap there, and compiled once; also for a
+    batch: on the main job's ten 64^2 images the ladder ran the render forward 0.69x and its
+    gradient 0.78x, the fit step 0.90x, but compiled the step in 44 instead of 35 s of CPU,
+    more than 57 LM steps win back)."""
     screen = math.ceil(width / tile_size) * math.ceil(height / tile_size)
     if width * height < 128 * 128:
         return (int(max_tiles),)
@@ -72,13 +75,14 @@ def window_budgets(width: int, height: int, max_tiles: int, tile_size: int = 2) 
     return tuple(sorted(set(small))) + (int(max_tiles),)
 
 
-def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int):
+def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int, batch_axes: tuple = ()):
     """(H * W,) int32 visible triangle per pixel (-1 background). No gradient.
 
     Triangles whose clamped bounding box holds at most `DIRECT_PIXELS` pixel centres (nearly all
     of a finely tessellated cloth) are tested at those pixels directly, per triangle; the others
     get tile x tile windows from the smallest of `window_budgets` that holds the frame's windows
-    (lax.switch; under vmap every budget runs). A z-buffer scatter-min of the candidates'
+    (lax.switch; under vmap with `batch_axes` named, the smallest that holds every image's
+    windows, else every budget runs). A z-buffer scatter-min of the candidates'
     depths, then a scatter-max of the ids of those equal to it (ties: larger id).
     """
     W, H = camera.width, camera.height
@@ -122,5 +126,5 @@ def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int):
     budgets = window_budgets(W, H, max_tiles, tile)
     if len(budgets) == 1:
         return pass_(budgets[0])
-    level = jnp.sum(ends[-1] > jnp.asarray(budgets[:-1]))
+    level = _batch_max(jnp.sum(ends[-1] > jnp.asarray(budgets[:-1])), batch_axes)
     return jax.lax.switch(level, [lambda b=b: pass_(b) for b in budgets])
