@@ -97,6 +97,7 @@ def test_batch_axis_keeps_one_switch_branch():
     assert "cond" in prims and "pmax" in prims
 
 
+@pytest.mark.slow  # ~15 s idle (42 s loaded); the default suite is near its 10-minute budget
 def test_batched_images_equal_each_frame_alone():
     img, ids = jax.jit(_batched)(FRAMES)
     for t in range(FRAMES.shape[0]):
