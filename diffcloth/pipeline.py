@@ -217,7 +217,7 @@ def _each_camera(one, cameras):
     one size and kind run in a `lax.map` (one copy of the renderer in the compiled program
     instead of one per camera: about half the compile time of a two-camera fit); others one
     after another. (A named `vmap` over the cameras instead measured 0.63x on the main job's
-    render gradient before rendfwd's raster changes were merged, 1.47x after: not used.)"""
+    render gradient before the silhouette-walk rewrite of 9ed76ed, 1.47x after it: not used.)"""
     leaves = [jax.tree_util.tree_flatten(c) for c in cameras]
     same = all(
         td == leaves[0][1]

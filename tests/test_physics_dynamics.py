@@ -184,6 +184,7 @@ def test_zero_frames_returns_initial_state_and_bad_counts_raise():
 STIFF = physics.make_material(stretch=5e4, shear=1e4, density=0.2)
 
 
+@pytest.mark.slow  # 8 s
 def test_stability_estimate_warns_and_explicit_blows_up_where_implicit_holds():
     sim = physics.make_sim(1 / 30, num_substeps=2)
     h_max = physics.stable_substep(SMALL, sim, STIFF)

@@ -41,6 +41,7 @@ def _traj_loss(base, mode):
     return lambda p: jnp.sum(pipeline.simulate(sc, p).x * w)
 
 
+@pytest.mark.slow  # 18 s; the default test below checks forward == reverse on a small scan
 def test_forward_sensitivities_equal_reverse_and_central_fd_on_the_trajectory(base):
     p0 = {k: jnp.float64(v) for k, v in P0.items()}
     g_fwd = jax.jit(jax.grad(_traj_loss(base, "forward")))(p0)

@@ -183,7 +183,9 @@ def _check_silhouette_gradient(base, faces, colors, camera, weights, moving, h=0
     return g, fd
 
 
-@pytest.mark.parametrize("camera_fn", [pixel_camera, persp_camera])
+@pytest.mark.parametrize(
+    "camera_fn", [pixel_camera, pytest.param(persp_camera, marks=pytest.mark.slow)]
+)  # perspective: 8 s
 def test_silhouette_gradient_translating_square(camera_fn):
     cam = camera_fn()
     scale = 1.0 if cam.kind == "orthographic" else 0.12

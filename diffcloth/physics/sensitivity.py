@@ -63,7 +63,8 @@ def _nonzero(t) -> bool:
 
 def use_forward(mode: str, num_params: int, out_size: int, itemsize: int) -> bool:
     """Whether forward sensitivities are used for `num_params` differentiated scalars and
-    `out_size` output scalars of `itemsize` bytes (the "auto" rule in the module docstring)."""
+    `out_size` output scalars of `itemsize` bytes (the "auto" rule in the module docstring).
+    Shapes: none (Python ints in, a Python bool out)."""
     if mode == "forward":
         return True
     if mode == "reverse":
