@@ -167,6 +167,7 @@ def test_case1_render_of_a_blow_up_exits_1_and_writes_nothing(tmp_path, capsys):
     assert code == 1 and "blew up" in err and not (tmp_path / "s").exists()
 
 
+@pytest.mark.slow  # 8 s; moved out of the default suite (10-minute budget)
 def test_case1_truth_that_collapses_the_cloth_is_a_config_error(tmp_path, capsys):
     # Adam renders the targets with simulate_and_render; an LM fit would compile its whole
     # Jacobian step first (fit/lm_video.py), the same finiteness check at 3x the test's time

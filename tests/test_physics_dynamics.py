@@ -133,6 +133,7 @@ def _energy_over(num_frames):
     return np.asarray(e)
 
 
+@pytest.mark.slow  # 6 s; moved out of the default suite (10-minute budget)
 def test_undamped_free_net_energy_bounded_10000_substeps():
     e = _energy_over(100)  # 100 frames x 100 substeps
     assert np.all(np.isfinite(e))
@@ -236,7 +237,10 @@ BALL = make_sphere((0.02, 0.0, 0.01), 0.1)
 DROP_NET = physics.grid_net(5, 5, (0.3, 0.3), center=(0.0, 0.15, 0.0))
 
 
-@pytest.mark.parametrize("integrator, substeps", [("symplectic", 20), ("implicit", 4)])
+@pytest.mark.parametrize(
+    "integrator, substeps",
+    [pytest.param("symplectic", 20, marks=pytest.mark.slow), ("implicit", 4)],
+)  # symplectic: 8 s
 def test_no_point_inside_the_sphere_after_any_step(integrator, substeps):
     m = physics.make_material(stretch=50.0, shear=10.0, friction=0.5)
     sim = physics.make_sim(1 / 30, num_substeps=substeps, integrator=integrator)

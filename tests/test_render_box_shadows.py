@@ -159,6 +159,7 @@ def _analytic(sc, img, classes, *, lit_image=None):
             np.testing.assert_allclose(img[lit], lit_image[lit], atol=1e-9, err_msg=k)
 
 
+@pytest.mark.slow  # 7 s; moved out of the default suite (10-minute budget)
 def test_box_shadow_visibility_at_the_receivers(box_scene, classes):
     """The shadow data `render` builds for a frame with boxes (`frame_shadow_maps` with the box
     mesh as occluder: cloth + box in one shadow map) gives visibility 0 at the plane and cloth

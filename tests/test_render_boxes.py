@@ -56,6 +56,7 @@ def test_box_mesh_is_closed_outward_and_matches_the_body():
     assert box_triangles([make_body("sphere", mass=1.0, radius=0.1)])[0].shape == (0, 3)
 
 
+@pytest.mark.slow  # 9 s; moved out of the default suite (10-minute budget)
 def test_box_occludes_the_cloth_and_is_occluded_by_it():
     cloth_back, cloth_front = _cloth(-0.3), _cloth(0.5)
     box = _poses((0.0, 0.0, 0.0))

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from diffcloth.render import camera as C
 from diffcloth.render import raster as R
@@ -129,6 +130,7 @@ def test_composite_by_depth_and_occlusion_gradient():
     np.testing.assert_allclose(float(gc[0]), fd, rtol=0.05)
 
 
+@pytest.mark.slow  # 7 s; moved out of the default suite (10-minute budget)
 def test_perspective_silhouette_and_empty():
     cam = C.make_camera((0.0, 0.0, 6.0), (0.0, 0.0, 0.0), (0, 1, 0), width=16, height=16)
     sph = Sphere(jnp.array([[0.0, 0.0, 0.0], [0.6, 0.3, 1.5]]), jnp.array([1.0, 0.4]))

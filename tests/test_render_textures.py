@@ -60,7 +60,9 @@ def test_mip_pyramid_and_lod():
     np.testing.assert_allclose(uv_lod(uv_img / 8, jnp.ones((H, W)), tex.shape), 0.0, atol=1e-12)
 
 
-@pytest.mark.parametrize("wrap", ["repeat", ("clamp", "repeat")])
+@pytest.mark.parametrize(
+    "wrap", [pytest.param("repeat", marks=pytest.mark.slow), ("clamp", "repeat")]
+)  # repeat: 8 s
 def test_sample_mip_equals_blend_of_every_level_with_gradients(wrap):
     """The packed two-level lookup equals sum_l max(0, 1 - |lod - l|) sample_2d(level l): values
     and gradients w.r.t. texels and uv for lod below 0, between levels, on a level and above; the
@@ -168,6 +170,7 @@ def test_cube_map_validation():
         T.make_cube_map(faces)
 
 
+@pytest.mark.slow  # 7 s; moved out of the default suite (10-minute budget)
 def test_procedural_textures():
     h = T.weave_height(32, 4)
     assert h.shape == (32, 32, 1) and float(h.min()) == 0.0 and float(h.max()) == 1.0
