@@ -21,16 +21,15 @@ from __future__ import annotations
 
 import argparse
 import collections
-import glob
 import re
 import sys
-import tempfile
 import time
 import tomllib
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+from _hlo_profile import attribute, hlo_tables, thunk_times
 from _timing import compile_and_run, emit, meta
 
 from diffcloth import pipeline
@@ -39,7 +38,6 @@ from diffcloth.scene import load_scene
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ("configs/drape_fit.toml", "configs/experiments/drape_material.toml")
-SKIP = ("ThunkExecutor", "while", "end:", "conditional")
 
 
 def _step(path: Path):
@@ -61,92 +59,30 @@ def _step(path: Path):
     return jax.jit(jax.value_and_grad(loss)), params
 
 
-def _hlo_tables(text: str):
-    """(instruction line by name, fused computation body by name, package by stack frame id)."""
-    files, locs, frames = {}, {}, {}
-    section = None
-    for line in text.splitlines():
-        s = line.strip()
-        if s in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
-            section = s
-            continue
-        m = re.match(r"^(\d+) (.*)$", s)
-        if section and m:
-            i, rest = int(m.group(1)), m.group(2)
-            if section == "FileNames":
-                files[i] = rest.strip('"')
-            elif section == "FileLocations":
-                locs[i] = int(re.search(r"file_name_id=(\d+)", rest).group(1))
-            elif section == "StackFrames":
-                frames[i] = int(re.search(r"file_location_id=(\d+)", rest).group(1))
-        elif section and s:
-            section = None
+def _package_of(where):
+    """Stack frame id -> the diffcloth package its file belongs to ("other" outside diffcloth)."""
 
-    def package(path):
-        m = re.search(r"diffcloth/(\w+?)(/|\.py)", path)
+    def key(i):
+        if i not in where:
+            return None
+        m = re.search(r"diffcloth/(\w+?)(/|\.py)", where[i][0])
         return m.group(1) if m else "other"
 
-    frame_pkg = {k: package(files.get(locs.get(v), "")) for k, v in frames.items()}
-    bodies, inst, cur = {}, {}, None
-    for line in text.splitlines():
-        m = re.match(r"^%?([\w.-]+) .*\{$", line)
-        if m and not line.startswith(" "):
-            cur = m.group(1)
-            bodies[cur] = []
-            continue
-        if cur is not None:
-            bodies[cur].append(line)
-        m = re.search(r"%([\w.-]+) = ", line)
-        if m:
-            inst[m.group(1)] = line
-    return inst, bodies, frame_pkg
-
-
-def _attribute(name, inst, bodies, frame_pkg):
-    line = inst.get(name, "")
-    called = re.search(r"calls=%([\w.-]+)", line)
-    body = bodies.get(called.group(1), []) if called else [line]
-    pkgs = collections.Counter()
-    backward = False
-    for b in body:
-        m = re.search(r"stack_frame_id=(\d+)", b)
-        if m and int(m.group(1)) in frame_pkg:
-            pkgs[frame_pkg[int(m.group(1))]] += 1
-        backward = backward or "transpose(" in b
-    pkg = pkgs.most_common(1)[0][0] if pkgs else "other"
-    return pkg, "backward" if backward else "forward"
+    return key
 
 
 def profile(config: str, repeats: int, out=None):
-    from jax._src.profiler import ProfileData
-
     step, params = _step(ROOT / config)
     t = time.perf_counter()
     compiled = step.lower(params).compile()
     compile_s = time.perf_counter() - t
     compile_and_run(compiled, params)
-    with tempfile.TemporaryDirectory(prefix="diffcloth_prof_") as tmp:
-        jax.profiler.start_trace(tmp)
-        t = time.perf_counter()
-        for _ in range(repeats):
-            jax.block_until_ready(compiled(params))
-        wall = (time.perf_counter() - t) / repeats
-        jax.profiler.stop_trace()
-        data = ProfileData.from_file(glob.glob(tmp + "/**/*.xplane.pb", recursive=True)[0])
-        ns, launches = collections.Counter(), collections.Counter()
-        for plane in data.planes:
-            for line in plane.lines:
-                if not line.name.startswith("tf_XLAEigen"):
-                    continue
-                for ev in line.events:
-                    if not ev.name.startswith(SKIP):
-                        ns[ev.name] += ev.duration_ns
-                        launches[ev.name] += 1
-    inst, bodies, frame_pkg = _hlo_tables(compiled.as_text())
+    ns, launches, wall = thunk_times(compiled, params, repeats=repeats)
+    inst, bodies, where = hlo_tables(compiled.as_text())
     by = collections.Counter()
     nby = collections.Counter()
     for name, v in ns.items():
-        key = _attribute(name, inst, bodies, frame_pkg)
+        key = attribute(name, inst, bodies, _package_of(where))[:2]
         by[key] += v
         nby[key] += launches[name]
     total = sum(by.values())

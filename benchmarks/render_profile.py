@@ -21,110 +21,36 @@ from __future__ import annotations
 
 import argparse
 import collections
-import glob
-import re
 import sys
-import tempfile
-import time
 from pathlib import Path
 
 import jax
+from _hlo_profile import attribute, hlo_tables, thunk_times
 from _timing import emit, meta
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "peers"))
-SKIP = ("ThunkExecutor", "ThreadpoolListener", "while", "end:", "conditional", "cond")
 
 
-def _tables(text: str):
-    """(instruction line by name, fused computation body by name, 'file:line(function)' by
-    stack frame id) from the compiled HLO text."""
-    files, funcs, locs, frames = {}, {}, {}, {}
-    section = None
-    for line in text.splitlines():
-        s = line.strip()
-        if s in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
-            section = s
-            continue
-        m = re.match(r"^(\d+) (.*)$", s)
-        if section and m:
-            i, rest = int(m.group(1)), m.group(2)
-            if section == "FileNames":
-                files[i] = rest.strip('"').split("diffcloth/")[-1]
-            elif section == "FunctionNames":
-                funcs[i] = rest.strip('"')
-            elif section == "FileLocations":
-                get = lambda k, rest=rest: int(re.search(rf"\b{k}=(\d+)", rest).group(1))
-                locs[i] = (get("file_name_id"), get("function_name_id"), get("line"))
-            elif section == "StackFrames":
-                frames[i] = int(re.search(r"file_location_id=(\d+)", rest).group(1))
-        elif section and s:
-            section = None
-    where = {}
-    for k, v in frames.items():
-        f, fn, ln = locs[v]
-        where[k] = f"{files.get(f, '?')}:{ln}({funcs.get(fn, '')})"
-    bodies, inst, cur = {}, {}, None
-    for line in text.splitlines():
-        m = re.match(r"^%?([\w.-]+) .*\{$", line)
-        if m and not line.startswith(" "):
-            cur = m.group(1)
-            bodies[cur] = []
-            continue
-        if cur is not None:
-            bodies[cur].append(line)
-        m = re.search(r"%([\w.-]+) = ", line)
-        if m:
-            inst[m.group(1)] = line
-    return inst, bodies, where
+def _line_of(where):
+    """Stack frame id -> 'file:line(function)' (path from the package root), None if unknown."""
 
+    def key(i):
+        if i not in where:
+            return None
+        path, ln, fn = where[i]
+        return f"{path.split('diffcloth/')[-1]}:{ln}({fn})"
 
-def _attribute(name, inst, bodies, where):
-    line = inst.get(name, "")
-    called = re.search(r"calls=%([\w.-]+)", line)
-    body = bodies.get(called.group(1), []) if called else [line]
-    lines = collections.Counter()
-    backward = False
-    for b in body:
-        m = re.search(r"stack_frame_id=(\d+)", b)
-        if m and int(m.group(1)) in where:
-            lines[where[int(m.group(1))]] += 1
-        backward = backward or "transpose(" in b
-    shape = re.search(r"= (\S+) ", line)
-    return (
-        lines.most_common(1)[0][0] if lines else "other",
-        "backward" if backward else "forward",
-        shape.group(1) if shape else "",
-    )
+    return key
 
 
 def profile(program: str, fn, arg, repeats: int, top: int, out=None):
-    from jax._src.profiler import ProfileData
-
     compiled = fn.lower(arg).compile()
-    for _ in range(2):
-        jax.block_until_ready(compiled(arg))
-    with tempfile.TemporaryDirectory(prefix="diffcloth_prof_") as tmp:
-        jax.profiler.start_trace(tmp)
-        t = time.perf_counter()
-        for _ in range(repeats):
-            jax.block_until_ready(compiled(arg))
-        wall = (time.perf_counter() - t) / repeats
-        jax.profiler.stop_trace()
-        data = ProfileData.from_file(glob.glob(tmp + "/**/*.xplane.pb", recursive=True)[0])
-        ns, launches = collections.Counter(), collections.Counter()
-        for plane in data.planes:
-            for line in plane.lines:
-                if not line.name.startswith("tf_XLAEigen"):
-                    continue
-                for ev in line.events:
-                    if not ev.name.startswith(SKIP):
-                        ns[ev.name] += ev.duration_ns
-                        launches[ev.name] += 1
-    inst, bodies, where = _tables(compiled.as_text())
+    ns, launches, wall = thunk_times(compiled, arg, repeats=repeats)
+    inst, bodies, where = hlo_tables(compiled.as_text())
     by_line, n_line = collections.Counter(), collections.Counter()
     rows = []
     for name, v in ns.items():
-        loc, direction, shape = _attribute(name, inst, bodies, where)
+        loc, direction, shape = attribute(name, inst, bodies, _line_of(where))
         by_line[(loc, direction)] += v
         n_line[(loc, direction)] += launches[name]
         rows.append((v, name, shape, loc, direction))
