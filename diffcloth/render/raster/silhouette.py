@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from diffcloth._math import materialize, materialize_grad, safe_div
 from diffcloth.render.coverage import edge_coverage, pair_share
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH
-from diffcloth.render.raster.scan import _batch_max, _compact
+from diffcloth.render.raster.scan import _batch_max, _compact, _ranks
 from diffcloth.render.raster.triangle_setup import _Setup
 
 _STEPS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # +x, -x, +y, -y
@@ -146,6 +146,41 @@ def _search(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk:
     return _edge_crossing(s, found, sel, a_front, vertical, px, py)
 
 
+def _chunked_walk(s: _Setup, sil, nbr, start, active, a_front, X, Y, walk: int):
+    """`_walk` of the full-image search over (2, H, W) pairs, run on the active pairs only:
+    compacted into lists of H W / 4 pairs, walked one list after another (a while loop; one
+    list for every frame of the main job, whose 64^2 images need at most 651 of 8,192 pairs)
+    and scattered back. Returns (found, sel) (2, H, W), the values `_walk` gives on the dense
+    pairs (each pair's walk is independent). No gradient."""
+    H, W = X.shape
+    n = 2 * H * W
+    size = max(H * W // 4, 1)
+    flags = active.reshape(-1)
+    rank = _ranks(flags)
+    count = jnp.sum(flags.astype(jnp.int32))
+    s = jax.tree_util.tree_map(jax.lax.stop_gradient, s)
+    start_f, front_f = start.reshape(-1), a_front.reshape(-1)
+    entry = jnp.arange(n, dtype=jnp.int32)
+
+    def body(carry):
+        off, found, sel = carry
+        slot = rank - off
+        here = flags & (slot >= 0) & (slot < size)
+        idx = jnp.zeros((size,), jnp.int32).at[jnp.where(here, slot, size)].set(entry, mode="drop")
+        act = jnp.arange(size, dtype=jnp.int32) < count - off
+        rem = idx % (H * W)
+        py, px = (rem // W).astype(X.dtype), (rem % W).astype(X.dtype)
+        f, e = _walk(s, sil, nbr, start_f[idx], act, front_f[idx], idx >= H * W, px, py, walk)
+        at = jnp.where(act, idx, n)
+        found = found.at[at].set(f, mode="drop")
+        sel = sel.at[at].set(e, mode="drop")
+        return off + size, found, sel
+
+    init = (jnp.zeros((), jnp.int32), jnp.zeros((n,), bool), jnp.zeros((n,), jnp.int32))
+    _, found, sel = jax.lax.while_loop(lambda c: c[0] < count, body, init)
+    return found.reshape(2, H, W), sel.reshape(2, H, W)
+
+
 def default_silhouette_budget(width: int, height: int) -> int:
     """Default size of the compacted silhouette-pair list: H W / 16 (with walk 8 the Mitsuba
     benchmark drape needs H W / 21 at 256 x 256; the wavy cloth of benchmarks/render.py, H W / 11,
@@ -218,10 +253,7 @@ def _crossings(
     sil, nbr, start, active, a_front = _pairs(s, tri, ok, depth, neighbors, walk)
     vertical = jnp.arange(2)[:, None, None] == 1
 
-    def full(_):
-        t, k, share, w_a, w_b = _search(
-            s, sil, nbr, start, active, a_front, vertical, X[None], Y[None], walk
-        )
+    def dense(t, k, share, w_a, w_b):
         # w_a on the pair's first pixel (+x / +y slot), w_b on its partner (-x / -y slot)
         weights = jnp.stack(
             [
@@ -233,26 +265,14 @@ def _crossings(
         )
         return t, k, share, weights
 
-    K = n if budget is None else min(int(budget), n)
-
-    def compact(K):
-        idx, act = _compact(active.reshape(-1), K)
-        rem = idx % (H * W)
-        py = (rem // W).astype(depth.dtype)
-        px = (rem % W).astype(depth.dtype)
-        vert = idx >= H * W
-        t, k, share, w_a, w_b = _search(
-            s,
-            sil,
-            nbr,
-            start.reshape(-1)[idx],
-            act,
-            a_front.reshape(-1)[idx],
-            vert,
-            px,
-            py,
-            walk,
+    def full(_):
+        return dense(
+            *_search(s, sil, nbr, start, active, a_front, vertical, X[None], Y[None], walk)
         )
+
+    def spread(idx, act, vert, t, k, share, w_a, w_b):
+        """A compacted list's crossings and weights (K,) -> dense (2, H, W) / (4, H, W)."""
+        K = idx.shape[0]
         at = jnp.where(act, idx, n)
         out = jnp.full((n,), -1.0, t.dtype).at[at].set(t, mode="drop")
         out_k = jnp.zeros((n,), k.dtype).at[at].set(k, mode="drop")
@@ -272,11 +292,43 @@ def _crossings(
         dense = (out.reshape(2, H, W), out_k.reshape(2, H, W), out_s.reshape(2, H, W))
         return dense + (weights.reshape(4, H, W),)
 
+    def listed(flags, K):
+        """The first K flagged pairs: (idx, act, vert, px, py)."""
+        idx, act = _compact(flags.reshape(-1), K)
+        rem = idx % (H * W)
+        py = (rem // W).astype(depth.dtype)
+        px = (rem % W).astype(depth.dtype)
+        return idx, act, idx >= H * W, px, py
+
+    def compact(K):
+        idx, act, vert, px, py = listed(active, K)
+        start_k, front_k = start.reshape(-1)[idx], a_front.reshape(-1)[idx]
+        crossing = _search(s, sil, nbr, start_k, act, front_k, vert, px, py, walk)
+        return spread(idx, act, vert, *crossing)
+
+    K = n if budget is None else min(int(budget), n)
     # compacted lists of K and 4 K pairs (a frame whose silhouettes need more than K pairs,
     # e.g. walk 8 on a cloth seen at a grazing angle, stays far below the full search's cost)
     sizes = [b for b in (K, 4 * K) if b < n]
     if not sizes:
-        t, k, share, weights = full(None)
+        # full search (small images): the walk runs on the active pairs only (`_chunked_walk`,
+        # one copy of it compiled); the differentiable crossing on a list of the found pairs
+        # (H W / 4 of them), or on every pair when more are found (one lax.switch over the
+        # crossing alone: its backward over all 2 H W pairs cost the main job's render gradient
+        # about a fifth, the search in full 8 levels of gathers over every pair)
+        found, sel = _chunked_walk(s, sil, nbr, start, active, a_front, X, Y, walk)
+        Kf = max(H * W // 4, 1)
+
+        def found_list(_):
+            idx, act, vert, px, py = listed(found, Kf)
+            sel_k, front_k = sel.reshape(-1)[idx], a_front.reshape(-1)[idx]
+            return spread(idx, act, vert, *_edge_crossing(s, act, sel_k, front_k, vert, px, py))
+
+        def every_pair(_):
+            return dense(*_edge_crossing(s, found, sel, a_front, vertical, X[None], Y[None]))
+
+        level = _batch_max((jnp.sum(found) > Kf).astype(jnp.int32), batch_axes)
+        t, k, share, weights = jax.lax.switch(level, [found_list, every_pair], None)
     else:
         level = _batch_max(jnp.sum(jnp.sum(active) > jnp.asarray(sizes)), batch_axes)
         branches = [lambda _, b=b: compact(b) for b in sizes] + [full]
