@@ -185,9 +185,10 @@ def default_silhouette_budget(width: int, height: int) -> int:
     """Default size of the compacted silhouette-pair list: H W / 16 (with walk 8 the Mitsuba
     benchmark drape needs H W / 21 at 256 x 256; the wavy cloth of benchmarks/render.py, H W / 11,
     takes the second list of 4 x the budget); below 128 x 128 pixels the full-image search
-    (budget 2 H W) is as cheap and compiles once instead of three times (also for a batch:
-    see `visibility.window_budgets`; the main job's 64^2 frames need at most 651 of 8,192
-    pairs).
+    (budget 2 H W), whose walk runs on the active pairs only (`_chunked_walk`) and whose
+    differentiable crossing on a list of the found ones (H W / 4, every pair beyond): one copy
+    of the walk compiled instead of three (also for a batch: see `visibility.window_budgets`;
+    the main job's 64^2 frames need at most 651 of 8,192 pairs).
 
     Shapes: none (Python ints).
     """
@@ -245,8 +246,9 @@ def _crossings(
     along the segment to the neighbour's centre and stops at the first silhouette edge. Only
     pairs whose front triangle has a silhouette edge within reach are searched; they are
     compacted into a static list of `budget` pairs, or of 4 `budget` pairs when more need it (a
-    full-image search runs beyond that). The search has no gradient; the crossing of the edge
-    found is recomputed differentiably.
+    full-image search runs beyond that; with a budget of at least 2 H W, the default below
+    128 x 128, the full search walks the active pairs in compacted chunks, `_chunked_walk`).
+    The search has no gradient; the crossing of the edge found is recomputed differentiably.
     """
     H, W = tri.shape
     n = 2 * H * W
