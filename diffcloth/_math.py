@@ -65,9 +65,6 @@ def safe_atan2(y, x, eps: float | None = None):
     return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, x, 1.0)), 0.0)
 
 
-_AB_LEGACY = [False]  # TEMP A/B
-
-
 def _scatter_copy(x):
     """x scattered row by row into zeros: a buffer of its own (zero-fill, copy of the shared zero
     constant, then the scatter), and its transpose is a row gather."""
@@ -102,8 +99,6 @@ def materialize(x):
     materialized. The value goes through `_in_place` (no zero-fill or copy); the tangent of a
     float x through `_scatter_copy`, so derivatives (forward and backward) are those of the row
     scatter. Differentiable in both modes."""
-    if _AB_LEGACY[0]:
-        return _scatter_copy(x)
     if jnp.issubdtype(jnp.result_type(x), jnp.inexact):
         return _materialize_float(x)
     return _in_place(x)

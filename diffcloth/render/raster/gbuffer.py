@@ -103,10 +103,6 @@ def _interpolate_all(attributes: dict, frags, faces) -> dict:
     (`materialize_value`): the per-pixel gathers would otherwise recompute the attributes'
     producers (e.g. the surface's normalised normals, the collision push-out) per pixel corner.
     Derivatives pass through unchanged."""
-    from diffcloth import _math
-
-    if _math._AB_LEGACY[0]:
-        return {k: interpolate(v, frags, faces) for k, v in attributes.items()}
     return {
         k: interpolate(materialize_value(jnp.asarray(v)), frags, faces)
         for k, v in attributes.items()

@@ -62,10 +62,7 @@ def _setup(positions, faces, camera: Camera, cull_backfaces: bool, mask=None) ->
     faces = faces.astype(jnp.int32)
     # materialized: the gather would otherwise recompute the projection (and whatever produced
     # the positions, e.g. the surface collision) per corner, 6x per vertex
-    from diffcloth import _math
-
-    vt = _vertex_table(positions, camera)
-    tv = (vt if _math._AB_LEGACY[0] else materialize_value(vt))[faces]  # (m, 3, 6)
+    tv = materialize_value(_vertex_table(positions, camera))[faces]  # (m, 3, 6)
     tsg = jax.lax.stop_gradient(tv)
     X, Y, Wc = (tv[:, :, j] for j in range(3))
     Xs, Ys, Ws, ds, xc, yc = (tsg[:, :, j] for j in range(6))
