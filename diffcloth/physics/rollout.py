@@ -159,8 +159,8 @@ NESTED_FRAMES = 64
 
 #: symplectic rollouts of at most this many node-substeps (nodes x substeps x frames) keep every
 #: substep's residuals instead of checkpointing the frames: the backward pass then does not run
-#: the forward a second time (the small nets are launch-bound; about 0.6 kB per node-substep, so
-#: at most ~40 MB). drape_fit: 130 x 16 x 15 = 31,200.
+#: the forward a second time (small nets are launch-bound). Gradient temporaries: ~80 B per
+#: node-substep (drape_material, 49,920: 3.9 MB vs 0.4 MB checkpointed). drape_fit: 31,200.
 SMALL_ROLLOUT = 65536
 
 
