@@ -65,14 +65,62 @@ def safe_atan2(y, x, eps: float | None = None):
     return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, x, 1.0)), 0.0)
 
 
+def _scatter_copy(x):
+    """x scattered row by row into zeros: a buffer of its own (zero-fill, copy of the shared zero
+    constant, then the scatter), and its transpose is a row gather."""
+    n = x.shape[0]
+    return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)
+
+
+def _in_place(x):
+    """x with its first row written back over itself: a dynamic update slice, done in place on
+    the producer's buffer (no zero-fill, no copy), so x is computed once into that buffer."""
+    if x.ndim == 0 or x.shape[0] == 0:
+        return x
+    return jax.lax.dynamic_update_slice_in_dim(x, x[:1], 0, axis=0)
+
+
+@jax.custom_jvp
+def _materialize_float(x):
+    return _in_place(x)
+
+
+@_materialize_float.defjvp
+def _materialize_float_jvp(primals, tangents):
+    (x,), (t,) = primals, tangents
+    return _in_place(x), _scatter_copy(t)
+
+
 def materialize(x):
     """x itself, computed once into a buffer. XLA's CPU fusion otherwise inlines producers that
     look cheap (per-triangle tables, texture lookups, shaded pixels) into every consumer that reads
     them, e.g. per pixel, per channel or per shifted neighbour, and recomputes them there
-    (optimization_barrier is removed before fusion); a scatter's result is always materialized.
-    Differentiable; costs one copy of x."""
-    n = x.shape[0]
-    return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)
+    (optimization_barrier is removed before fusion); an in-place update's operand is always
+    materialized. The value goes through `_in_place` (no zero-fill or copy); the tangent of a
+    float x through `_scatter_copy`, so derivatives (forward and backward) are those of the row
+    scatter. Differentiable in both modes."""
+    if jnp.issubdtype(jnp.result_type(x), jnp.inexact):
+        return _materialize_float(x)
+    return _in_place(x)
+
+
+@jax.custom_jvp
+def _value_only(x):
+    return _in_place(x)
+
+
+@_value_only.defjvp
+def _value_only_jvp(primals, tangents):
+    (x,), (t,) = primals, tangents
+    return _in_place(x), t
+
+
+def materialize_value(x):
+    """x itself, its value computed once into a buffer (as `materialize`), its tangent and
+    cotangent passed through untouched: the derivative programs are those of x itself."""
+    if jnp.issubdtype(jnp.result_type(x), jnp.inexact):
+        return _value_only(x)
+    return _in_place(x)
 
 
 def _reread(x):
@@ -97,4 +145,4 @@ def materialize_grad(x):
 @materialize_grad.defjvp
 def _materialize_grad_jvp(primals, tangents):
     (x,), (t,) = primals, tangents
-    return x, _reread(materialize(t))
+    return x, _reread(_scatter_copy(t))

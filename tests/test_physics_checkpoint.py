@@ -62,3 +62,39 @@ def test_advance_is_the_last_frame_of_rollout():
     traj = physics.rollout(net, sim, mat, s0, num_frames=frames)
     np.testing.assert_array_equal(last.x, traj.x[-1])
     np.testing.assert_array_equal(last.v, traj.v[-1])
+
+
+@pytest.mark.slow  # ~30 s loaded (two gradient compiles); the default FD tests take this path
+def test_small_rollout_skips_frame_checkpoint_same_gradient(monkeypatch):
+    """Small symplectic rollouts keep every substep's residuals (no frame checkpoint, no second
+    forward pass): their material gradient equals the checkpointed rollout's (float64). The
+    central-FD gradient tests (test_physics_gradients, 3 x 4 nets) run on this small path too."""
+    import importlib
+
+    from diffcloth.shapes import make_sphere
+
+    ro = importlib.import_module("diffcloth.physics.rollout")
+    with jax.enable_x64(True):
+        net = physics.grid_net(3, 4, (0.3, 0.2), center=(0.0, 0.12, 0.0))
+        sim = physics.make_sim(1 / 60, num_substeps=4)
+        mat = physics.make_material(bend=2e-3, damping=5e-3, friction=0.4, drag_normal=0.8)
+        s0 = physics.ClothState(net.rest, jnp.zeros_like(net.rest).at[..., 0].set(0.4))
+        ball = physics.as_colliders(make_sphere((0.05, 0.0, 0.02), 0.1))
+
+        def loss(m):
+            traj = physics.rollout(net, sim, m, s0, num_frames=4, colliders=ball)
+            return jnp.sum(traj.x**2 * jnp.arange(1.0, 5.0)[:, None, None, None])
+
+        def grad_and_checkpoints():
+            jaxpr = str(jax.make_jaxpr(jax.grad(loss))(mat))
+            return jax.jit(jax.grad(loss))(mat), jaxpr.count("remat") + jaxpr.count("checkpoint")
+
+        assert 3 * 4 * 4 * 4 <= ro.SMALL_ROLLOUT
+        g_small, ck_small = grad_and_checkpoints()
+        monkeypatch.setattr(ro, "SMALL_ROLLOUT", 0)
+        g_ck, ck_ck = grad_and_checkpoints()
+        assert ck_ck > ck_small  # the frame checkpoint is really gone on the small path
+        for name in ("bend", "drag_normal", "stretch", "damping"):
+            a, b = float(getattr(g_small, name)), float(getattr(g_ck, name))
+            assert np.isfinite(b) and b != 0.0, name
+            np.testing.assert_allclose(a, b, rtol=1e-7, err_msg=name)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize, materialize_grad, safe_normalize
+from diffcloth._math import materialize, materialize_grad, materialize_value, safe_normalize
 from diffcloth.render.camera import Camera
 from diffcloth.render.coverage import edge_coverage
 from diffcloth.render.mesh import vertex_normals
@@ -98,6 +98,17 @@ def antialias_weights(buffer, dtype):
     )
 
 
+def _interpolate_all(attributes: dict, frags, faces) -> dict:
+    """`interpolate` of every attribute, each computed once into a buffer first
+    (`materialize_value`): the per-pixel gathers would otherwise recompute the attributes'
+    producers (e.g. the surface's normalised normals, the collision push-out) per pixel corner.
+    Derivatives pass through unchanged."""
+    return {
+        k: interpolate(materialize_value(jnp.asarray(v)), frags, faces)
+        for k, v in attributes.items()
+    }
+
+
 def rasterize_gbuffer(
     positions,
     faces,
@@ -132,7 +143,7 @@ def rasterize_gbuffer(
         silhouette_budget=silhouette_budget,
         batch_axes=batch_axes,
     )
-    attrs = {k: interpolate(v, frags, faces) for k, v in attributes.items()}
+    attrs = _interpolate_all(attributes, frags, faces)
     return GBuffer(
         attributes=attrs,
         depth=frags.depth,

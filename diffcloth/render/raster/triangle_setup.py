@@ -9,7 +9,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize
+from diffcloth._math import materialize, materialize_value
 from diffcloth.render.camera import Camera, project
 
 
@@ -60,7 +60,9 @@ def _setup(positions, faces, camera: Camera, cull_backfaces: bool, mask=None) ->
     """
     W, H = camera.width, camera.height
     faces = faces.astype(jnp.int32)
-    tv = _vertex_table(positions, camera)[faces]  # (m, 3, 6)
+    # materialized: the gather would otherwise recompute the projection (and whatever produced
+    # the positions, e.g. the surface collision) per corner, 6x per vertex
+    tv = materialize_value(_vertex_table(positions, camera))[faces]  # (m, 3, 6)
     tsg = jax.lax.stop_gradient(tv)
     X, Y, Wc = (tv[:, :, j] for j in range(3))
     Xs, Ys, Ws, ds, xc, yc = (tsg[:, :, j] for j in range(6))
