@@ -80,15 +80,14 @@ def _in_place(x):
     return jax.lax.dynamic_update_slice_in_dim(x, x[:1], 0, axis=0)
 
 
-@jax.custom_jvp
-def _materialize_float(x):
-    return _in_place(x)
+def _in_place_with_tangent(tangent_rule):
+    """`_in_place` as a custom_jvp whose tangent is tangent_rule(t)."""
+    fn = jax.custom_jvp(_in_place)
+    fn.defjvp(lambda primals, tangents: (_in_place(primals[0]), tangent_rule(tangents[0])))
+    return fn
 
 
-@_materialize_float.defjvp
-def _materialize_float_jvp(primals, tangents):
-    (x,), (t,) = primals, tangents
-    return _in_place(x), _scatter_copy(t)
+_materialize_float = _in_place_with_tangent(_scatter_copy)
 
 
 def materialize(x):
@@ -104,15 +103,7 @@ def materialize(x):
     return _in_place(x)
 
 
-@jax.custom_jvp
-def _value_only(x):
-    return _in_place(x)
-
-
-@_value_only.defjvp
-def _value_only_jvp(primals, tangents):
-    (x,), (t,) = primals, tangents
-    return _in_place(x), t
+_value_only = _in_place_with_tangent(lambda t: t)
 
 
 def materialize_value(x):
