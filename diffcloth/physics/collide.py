@@ -18,6 +18,7 @@ import numpy as np
 
 from diffcloth._math import safe_div
 from diffcloth.physics.forces import _direction_planar, _dot
+from diffcloth.physics.sphere_contact import sphere_impact
 from diffcloth.shapes import Plane, Sphere
 
 
@@ -136,6 +137,17 @@ def collide(
     """
     sphere_imp = []
     for k in range(colliders.num_spheres):
+        if x_start is not None and _hand_contact():
+            vel = colliders.sphere_velocity[k]
+            c = colliders.spheres.center[k] + vel * sphere_shift
+            r = colliders.spheres.radius[k] + margin
+            v_start = v if v_start is None else v_start
+            args = tuple(jnp.asarray(a, x.dtype) for a in (c, vel, r))
+            args += (free, jnp.asarray(friction, x.dtype), jnp.asarray(h, x.dtype))
+            x, v_new = sphere_impact(x, v, x_start, v_start, *args)
+            sphere_imp.append(jnp.sum(mass[None] * (v_new - v), axis=(1, 2)))
+            v = v_new
+            continue
         vel = colliders.sphere_velocity[k][:, None, None]
         c = colliders.spheres.center[k][:, None, None] + vel * sphere_shift
         r = colliders.spheres.radius[k] + margin
@@ -174,6 +186,14 @@ def collide(
 #: differentiated by plain autodiff, whose JVP costs a few elementwise passes per tangent instead
 #: of the per-node (6, 19) Jacobian that makes reverse mode fast.
 _PLAIN_CONTACT = [False]
+
+
+def _hand_contact() -> bool:
+    """True when the sphere contact takes `sphere_contact.sphere_impact` (hand-written VJP,
+    reverse mode only): outside forward-sensitivity tracing and `autodiff_forces`."""
+    from diffcloth.physics.stencil_vjp import _HAND_VJP
+
+    return _HAND_VJP[0] and not _PLAIN_CONTACT[0]
 
 
 def _contact(x, v, v_start, vel, nrm, inside, d0, d1, friction, h):
