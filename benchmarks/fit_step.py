@@ -2,6 +2,7 @@
 
     python benchmarks/fit_step.py --base d26acf4              # that commit vs this working tree
     python benchmarks/fit_step.py --base d26acf4 --new perf --configs configs/drape_fit.toml
+    python benchmarks/fit_step.py --single                    # this tree only (e.g. on a GPU)
 
 `--base` (a commit) is checked out with `git worktree add --detach` into a temporary folder;
 `--new` is a commit too, or "WORKTREE" (default: this working tree as it is). Each (tree,
@@ -16,7 +17,8 @@ values, targets rendered at [truth] (as `diffcloth fit` does). One JSON line per
   forward_ms loss value only (jitted), median
   step_ms    value and gradient (jitted), median;  backward_ms = step_ms - forward_ms
 and one line per config with bench "fit_step_ratio": step_ratio, forward_ratio, backward_ratio,
-compile_ratio (new / base, below 1: faster).
+compile_ratio (new / base, below 1: faster). With --single: the "new" lines only (tree "this",
+commit from git where there is one), no base and no ratio.
 """
 
 from __future__ import annotations
@@ -95,26 +97,45 @@ def _run_child(tree: Path, config: str, repeats: int) -> dict:
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-def _commit(tree: Path) -> str:
-    return subprocess.run(
+def _commit(tree: Path) -> str | None:
+    res = subprocess.run(
         ["git", "-C", str(tree), "rev-parse", "--short", "HEAD"],
         capture_output=True,
         text=True,
-        check=True,
-    ).stdout.strip()
+        check=False,
+    )
+    return res.stdout.strip() or None
+
+
+def _single(args, out) -> None:
+    """This tree alone: one line per config (no base, no ratio)."""
+    for config in args.configs:
+        rs = [_run_child(ROOT, config, args.repeats) for _ in range(args.rounds)]
+        keys = ("compile_s", "forward_ms", "step_ms", "backward_ms")
+        best = {k: min(r[k] for r in rs) for k in keys}
+        row = dict(bench="fit_step", config=config, tree="this", commit=_commit(ROOT))
+        emit(dict(row, rounds=args.rounds, **best), out)
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--base", required=True, help="the reference commit")
+    parser.add_argument("--base", help="the reference commit (required unless --single)")
+    parser.add_argument("--single", action="store_true", help="time this tree only")
     parser.add_argument("--new", default="WORKTREE", help='a commit, or "WORKTREE"')
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS))
     parser.add_argument("--repeats", type=int, default=5, help="timed calls per process")
     parser.add_argument("--rounds", type=int, default=1, help="fresh processes per tree")
     parser.add_argument("--out", help="also write the JSON lines to this file")
     args = parser.parse_args()
+    if args.base is None and not args.single:
+        parser.error("--base COMMIT is required (or --single for this tree alone)")
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
     emit(meta("fit_step", base=args.base, new=args.new), out)
+    if args.single:
+        _single(args, out)
+        if out is not None:
+            out.close()
+        return
     with tempfile.TemporaryDirectory(prefix="diffcloth_fit_step_") as tmp:
         trees = {}
         for name, ref in (("base", args.base), ("new", args.new)):

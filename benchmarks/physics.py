@@ -2,6 +2,7 @@
 
     python benchmarks/physics.py            # nets 13x10, 32x32, 64x64, 128x128; both integrators
     python benchmarks/physics.py --quick    # 13x10 and 32x32 only, fewer repeats
+    python benchmarks/physics.py --integrators symplectic --no-extras   # the gradient cases only
 
 Keys: bench, net ("cols x rows" as "RxC" -> e.g. "13x10"), integrator, step_us (forward, per substep,
 median, of one call rolling out one frame: 40 substeps symplectic, 100 implicit), symplectic only:
@@ -125,15 +126,21 @@ def bench_memory(rows, cols):
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument(
+        "--integrators", default="symplectic,implicit", help="comma-separated, in this order"
+    )
+    parser.add_argument("--no-extras", action="store_true", help="skip the layout and memory cases")
     args = parser.parse_args()
     sizes = [(10, 13), (32, 32)] if args.quick else [(10, 13), (32, 32), (64, 64), (128, 128)]
     repeats = 3 if args.quick else 7
     emit(meta("physics"))
     for rows, cols in sizes:
-        for integrator in ("symplectic", "implicit"):
+        for integrator in args.integrators.split(","):
             print(json.dumps(bench_case(rows, cols, integrator, repeats)), flush=True)
-        print(json.dumps(bench_layout(rows, cols, repeats)), flush=True)
-    print(json.dumps(bench_memory(10, 13)), flush=True)
+        if not args.no_extras:
+            print(json.dumps(bench_layout(rows, cols, repeats)), flush=True)
+    if not args.no_extras:
+        print(json.dumps(bench_memory(10, 13)), flush=True)
 
 
 if __name__ == "__main__":

@@ -565,6 +565,144 @@ def compile_section() -> list[str]:
     return out
 
 
+def _first(lines, **keys):
+    """The first line whose items include `keys` (None if none)."""
+    return next((r for r in lines if all(r.get(k) == v for k, v in keys.items())), None)
+
+
+def _pick(row, key):
+    return None if row is None else row.get(key)
+
+
+def gpu_rows(gpu, cpu) -> list[list]:
+    """(stage, case, GPU figure, CPU figure) from `benchmarks/gpu.py`'s lines and the CPU
+    scripts' committed lines (dicts of name -> lines)."""
+    rows = []
+    for net in ("13x10", "32x32", "64x64", "128x128"):
+        g = _first(gpu, bench="physics", net=net, integrator="symplectic")
+        c = _first(cpu["physics"], bench="physics", net=net, integrator="symplectic")
+        peer = _first(cpu["warp_cloth"], bench="peers_physics", net=net)
+        rows.append(
+            [
+                "physics",
+                f"substep in a 2,000-substep call, {net} (us)",
+                _pick(g, "step_rollout_us"),
+                _pick(c, "step_rollout_us"),
+            ]
+        )
+        rows.append(
+            [
+                "physics",
+                f"gradient through 100 substeps, {net} (ms)",
+                _pick(g, "grad100_ms"),
+                _pick(peer, "diffcloth_grad_ms"),
+            ]
+        )
+    for case in ("forward", "gradient"):
+        g = _first(gpu, bench="surface.tessellate", case=case, level=13)
+        c = _first(cpu["surface"], bench="surface.tessellate", case=case, level=13)
+        rows.append(
+            [
+                "surface",
+                f"tessellation level 13, {case} (ms)",
+                _pick(g, "median_ms"),
+                _pick(c, "median_ms"),
+            ]
+        )
+    for size in (256, 512):
+        g = _first(gpu, bench="render_mesh_cloth", size=size)
+        c = _first(cpu["render"], bench="render_mesh_cloth", size=size)
+        for key, what in (("forward_ms", "forward"), ("grad_ms", "forward + backward")):
+            rows.append(
+                [
+                    "render",
+                    f"rasterize + Lambert {size}^2, {what} (ms)",
+                    _pick(g, key),
+                    _pick(c, key),
+                ]
+            )
+    for r in gpu:
+        if r.get("bench") == "shading":
+            c = _first(cpu["shading"], bench="shading", mode=r["mode"])
+            rows.append(
+                [
+                    "shading",
+                    f"full render 256^2, {r['mode']}, forward (ms)",
+                    r["render_fwd_ms"],
+                    _pick(c, "render_fwd_ms"),
+                ]
+            )
+    for r in gpu:
+        if r.get("bench") == "interactive":
+            c = _first(cpu["interactive"], bench="interactive", mode=r["mode"])
+            rows.append(
+                [
+                    "interactive",
+                    f"frame of the default scene, {r['mode']} (fps)",
+                    r["fps"],
+                    _pick(c, "fps"),
+                ]
+            )
+    for r in gpu:
+        if r.get("bench") == "fit_step":
+            c = _first(cpu["fit_step"], bench="fit_step", config=r["config"], tree="new")
+            rows.append(
+                [
+                    "fit step",
+                    f"value + gradient, {r['config']} (ms)",
+                    r["step_ms"],
+                    _pick(c, "step_ms"),
+                ]
+            )
+    g = _first(gpu, bench="compile", run="cold")
+    c = [r for r in cpu["compile"] if r.get("bench") == "compile" and r.get("run") == "cold"]
+    rows.append(
+        [
+            "main job",
+            "cold `diffcloth fit configs/drape_fit.toml`, wall (s)",
+            _pick(g, "wall_s"),
+            c[-1]["wall_s"] if c else None,
+        ]
+    )
+    rows.append(
+        [
+            "main job",
+            "of which XLA compile (s)",
+            _pick(g, "backend_compile_s"),
+            c[-1]["backend_compile_s"] if c else None,
+        ]
+    )
+    return [r for r in rows if r[2] is not None]  # fmt: skip
+
+
+def gpu_section() -> list[str]:
+    """The GPU column (`benchmarks/gpu.py`), when its JSON lines exist."""
+    gpu = read("gpu")
+    names = ("physics", "warp_cloth", "surface", "render", "shading", "interactive", "fit_step")
+    cpu = {n: read(n) for n in (*names, "compile")}
+    rows = gpu_rows(gpu, cpu)
+    if not rows:
+        return []
+    metas = [r for r in gpu if r.get("bench") == "meta"]
+    m = metas[0] if metas else {}
+    device = next(
+        (r["device"] for r in gpu if str(r.get("device", "")).startswith("NVIDIA")), "GPU"
+    )
+    return [
+        "## GPU column",
+        "",
+        f"`benchmarks/gpu.py` on {device} (JAX {m.get('jax', '?')}, Python {m.get('python', '?')}, "
+        f"float32, {m.get('utc', '?')[:10]}), the same code as on the CPU; the CPU column is the "
+        "committed CPU figure of the same benchmark (2-core CPU, its own date: compare orders of "
+        "magnitude, not percentages). The CPU physics gradient is the Warp peers run's. Not run "
+        "on the GPU: the peers (Warp's wheel is over the device tool's 64 MiB transfer limit; "
+        "Mitsuba's CUDA variant was not tried) and the implicit 128 x 128 case (time limit).",
+        "",
+        _table(["stage", "case", "GPU", "CPU"], rows),
+        "",
+    ]
+
+
 def write(path: Path = HERE / "RESULTS.md") -> str:
     phys, rend = read("warp_cloth"), read("mitsuba_render")
     agree = read("mitsuba_agreement")
@@ -585,6 +723,7 @@ def write(path: Path = HERE / "RESULTS.md") -> str:
         "",
         *perf_section(),
         *compile_section(),
+        *gpu_section(),
         *agreement_section(agree),
         "",
         *CAVEATS,
