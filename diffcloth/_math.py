@@ -72,7 +72,7 @@ def _scatter_copy(x):
     return jnp.zeros_like(x).at[jnp.arange(n)].set(x, unique_indices=True, indices_are_sorted=True)
 
 
-def _in_place(x):
+def in_place(x):
     """x with its first row written back over itself: a dynamic update slice, done in place on
     the producer's buffer (no zero-fill, no copy), so x is computed once into that buffer."""
     if x.ndim == 0 or x.shape[0] == 0:
@@ -81,9 +81,9 @@ def _in_place(x):
 
 
 def _in_place_with_tangent(tangent_rule):
-    """`_in_place` as a custom_jvp whose tangent is tangent_rule(t)."""
-    fn = jax.custom_jvp(_in_place)
-    fn.defjvp(lambda primals, tangents: (_in_place(primals[0]), tangent_rule(tangents[0])))
+    """`in_place` as a custom_jvp whose tangent is tangent_rule(t)."""
+    fn = jax.custom_jvp(in_place)
+    fn.defjvp(lambda primals, tangents: (in_place(primals[0]), tangent_rule(tangents[0])))
     return fn
 
 
@@ -95,12 +95,12 @@ def materialize(x):
     look cheap (per-triangle tables, texture lookups, shaded pixels) into every consumer that reads
     them, e.g. per pixel, per channel or per shifted neighbour, and recomputes them there
     (optimization_barrier is removed before fusion); an in-place update's operand is always
-    materialized. The value goes through `_in_place` (no zero-fill or copy); the tangent of a
+    materialized. The value goes through `in_place` (no zero-fill or copy); the tangent of a
     float x through `_scatter_copy`, so derivatives (forward and backward) are those of the row
     scatter. Differentiable in both modes."""
     if jnp.issubdtype(jnp.result_type(x), jnp.inexact):
         return _materialize_float(x)
-    return _in_place(x)
+    return in_place(x)
 
 
 _value_only = _in_place_with_tangent(lambda t: t)
@@ -111,7 +111,7 @@ def materialize_value(x):
     cotangent passed through untouched: the derivative programs are those of x itself."""
     if jnp.issubdtype(jnp.result_type(x), jnp.inexact):
         return _value_only(x)
-    return _in_place(x)
+    return in_place(x)
 
 
 def _reread(x):

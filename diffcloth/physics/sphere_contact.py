@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
-from diffcloth._math import _in_place, dtype_eps
+from diffcloth._math import dtype_eps, in_place
 
 
 def _dot(a, b):
@@ -51,7 +51,7 @@ def _pack(tree):
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     dt = next(a.dtype for a in leaves if a.dtype != jnp.bool_)
     shape = jnp.broadcast_shapes(*(jnp.shape(a) for a in leaves))
-    stacked = _in_place(jnp.stack([jnp.broadcast_to(a.astype(dt), shape) for a in leaves]))
+    stacked = in_place(jnp.stack([jnp.broadcast_to(a.astype(dt), shape) for a in leaves]))
     out = [stacked[i] > 0.5 if a.dtype == jnp.bool_ else stacked[i] for i, a in enumerate(leaves)]
     return jax.tree_util.tree_unflatten(treedef, out)
 
@@ -222,7 +222,7 @@ def _backward(x, v, xs, vs, c, vel, r, free, f, h, gx, gv, want):
 
 
 def _planar(t):
-    return _in_place(jnp.stack(t))
+    return in_place(jnp.stack(t))
 
 
 @jax.custom_vjp
