@@ -12,7 +12,7 @@ from diffcloth.render import camera as C
 from diffcloth.render import raster as R
 
 SIZE = (
-    128  # the smallest size with budget ladders: windows 512 / 4096 / max, pairs 1024 / 4096 / all
+    128  # the smallest size with budget ladders: windows 1024 / 4096 / max, pairs 1024 / 4096 / all
 )
 N = 6  # grid of N x N quads, 2 N^2 triangles
 
@@ -75,8 +75,8 @@ def test_frames_need_different_budgets():
     )
     tiles, pairs = (np.asarray(c).tolist() for c in counts(FRAMES))
     budgets = R.window_budgets(SIZE, SIZE, R.default_max_tiles(FACES.shape[0], SIZE, SIZE))
-    assert budgets[:2] == (512, 4096)
-    assert tiles[0] <= 512 < tiles[2], tiles
+    assert budgets[:2] == (1024, 4096)
+    assert tiles[0] <= 1024 < tiles[1] <= 4096 < tiles[2], tiles
     K = R.default_silhouette_budget(SIZE, SIZE)
     assert K == 1024
     assert pairs[0] <= K < pairs[2], pairs

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import EPS, safe_normalize
+from diffcloth._math import EPS, materialize_value, safe_normalize
 
 PARALLEL_KINDS = (
     "orthographic",
@@ -479,7 +479,12 @@ def pixel_rays(camera: Camera):
     ok = sq > EPS.get(jnp.dtype(dtype), 1e-12)  # as safe_normalize: +y for a zero vector
     n = jnp.sqrt(jnp.where(ok, sq, 1.0))
     fallback = (0.0, 1.0, 0.0)
-    d = [jnp.where(ok, jnp.where(ok, d[i], 1.0) / n, fallback[i]) for i in range(3)]
+    # each component computed in a loop fusion of its own (value materialized, derivatives
+    # untouched): fused into the stack, the chain ran as one branch per entry
+    d = [
+        materialize_value(jnp.where(ok, jnp.where(ok, d[i], 1.0) / n, fallback[i]))
+        for i in range(3)
+    ]
     return jnp.stack(p0, axis=-1), jnp.stack(d, axis=-1).astype(dtype)
 
 

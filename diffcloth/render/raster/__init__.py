@@ -16,7 +16,7 @@ Pipeline (everything pure JAX; jit, vmap and grad work; no Python loops over pix
    DIRECT_PIXELS (2) pixel centres (nearly every cloth triangle: sub-pixel at 256 x 256) is
    tested at those pixels directly, per triangle, without any allocation. Larger triangles get
    tile_size x tile_size pixel windows covering their box, allocated by a prefix sum from a
-   static budget: the smallest of `window_budgets` (1/8 or 1 screen of windows, else
+   static budget: the smallest of `window_budgets` (1/4 or 1 screen of windows, else
    `max_tiles`, default: triangles + 2 full screens of windows) that holds the frame's
    windows (lax.switch; under a vmap whose axes are named in `batch_axes` the smallest that
    holds every image's windows, pmax over the batch, else every budget runs; below 128 x 128

@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize, safe_div
+from diffcloth._math import materialize, materialize_value, safe_div
 from diffcloth.render.camera import Camera
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH, Fragments
 from diffcloth.render.raster.silhouette import _crossings, _pairs, default_silhouette_budget
@@ -161,7 +161,9 @@ def interpolate(attributes, fragments: Fragments, faces):
     faces = jnp.asarray(faces).astype(jnp.int32)
     if faces.shape[0] == 0:
         return jnp.zeros(tri.shape + attributes.shape[1:], attributes.dtype)
-    vid = faces[tri]  # (H, W, 3)
+    # the attributes of each triangle's corners (m, 3, ...) computed once, then one gather per
+    # pixel (a gather of the pixel's vertex ids and one per corner cost four passes)
+    corners = materialize_value(attributes[faces])[tri]  # (H, W, 3, ...)
     b = fragments.barycentric.astype(attributes.dtype)
-    out = sum(b[..., k, None] * attributes[vid[..., k]] for k in range(3))
+    out = sum(b[..., k, None] * corners[:, :, k] for k in range(3))
     return jnp.where((fragments.triangle_id >= 0)[..., None], out, 0.0)

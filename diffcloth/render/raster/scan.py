@@ -5,14 +5,20 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from diffcloth._math import materialize
+
 
 def _cumsum(x):
+    """Inclusive prefix sum of a 1-D int array (log-depth scan). The input is materialized:
+    each level of the scan reads it, and fused the producer (e.g. the window counts from the
+    bounding boxes) was recomputed in five of them."""
     # jnp.cumsum / lax.cummax lower to reduce_window on CPU, ~10x slower than a log-depth scan
-    return jax.lax.associative_scan(jnp.add, x)
+    return jax.lax.associative_scan(jnp.add, materialize(x))
 
 
 def _cummax(x):
-    return jax.lax.associative_scan(jnp.maximum, x)
+    """Inclusive prefix maximum of a 1-D int array (log-depth scan, input materialized)."""
+    return jax.lax.associative_scan(jnp.maximum, materialize(x))
 
 
 def _compact(flags, size: int):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize, materialize_grad, safe_div
+from diffcloth._math import materialize, materialize_grad, materialize_value, safe_div
 from diffcloth.render.coverage import edge_coverage, pair_share
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH
 from diffcloth.render.raster.scan import _batch_max, _compact, _ranks
@@ -115,7 +115,10 @@ def _edge_crossing(s: _Setup, found, sel, a_front, vertical, px, py):
     # rematerialized forward) for each of the 3 components of the edge row's cotangent (main
     # job's 64^2 full search: that fusion 30 -> 4.3 ms of thunk time, render gradient 0.74x CPU)
     t, k, share = materialize_grad(t), materialize_grad(k), materialize_grad(share)
-    return (t, k, share) + _pair_weights(t, k, share, a_front)
+    # each weight computed in a loop fusion of its own (its value materialized; derivatives
+    # untouched): concatenated for the scatter, the chain ran as one branch per entry
+    w_a, w_b = _pair_weights(t, k, share, a_front)
+    return (t, k, share, materialize_value(w_a), materialize_value(w_b))
 
 
 def _pair_weights(t, k, share, a_front):
@@ -226,7 +229,13 @@ def _pairs(s: _Setup, tri, ok, depth, neighbors, walk: int):
     inner = jnp.stack(
         [jnp.ones((H, W), bool).at[:, -1].set(False), jnp.ones((H, W), bool).at[-1].set(False)]
     )
-    active = (ids[None] != ids_n) & inner & (start >= 0) & reach[jnp.maximum(start, 0)]
+    # the front triangle's reach, looked up once per pixel (materialized; per pair it was a
+    # gather of its own) and read from the pair's front pixel
+    here = materialize(ok & reach[tri])
+    here_n = jnp.stack(
+        [jnp.pad(here[:, 1:], ((0, 0), (0, 1))), jnp.pad(here[1:], ((0, 1), (0, 0)))]
+    )
+    active = (ids[None] != ids_n) & inner & jnp.where(a_front, here[None], here_n)
     return sil, nbr, start, active, a_front
 
 

@@ -3,6 +3,7 @@ the window counts the visibility pass allocates from."""
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -57,6 +58,11 @@ def _setup(positions, faces, camera: Camera, cull_backfaces: bool, mask=None) ->
     Edge functions are taken relative to an integer pixel origin near vertex 0, so that a tiny
     triangle's homogeneous columns are well conditioned and the zero-area test is relative to the
     triangle's own size: |det| <= 64 eps |c0| |c1| |c2| counts as degenerate and is skipped.
+
+    Written per (m,) column, with the reductions over a triangle's corners and bounding-box points
+    spelled out as elementwise min / max / and: XLA's CPU backend then computes the setup in a
+    few loop fusions (reductions over a 3- or 6-long minor axis and the stacked intermediate
+    arrays split it into about forty, each a pass over the triangles).
     """
     W, H = camera.width, camera.height
     faces = faces.astype(jnp.int32)
@@ -64,16 +70,15 @@ def _setup(positions, faces, camera: Camera, cull_backfaces: bool, mask=None) ->
     # the positions, e.g. the surface collision) per corner, 6x per vertex
     tv = materialize_value(_vertex_table(positions, camera))[faces]  # (m, 3, 6)
     tsg = jax.lax.stop_gradient(tv)
-    X, Y, Wc = (tv[:, :, j] for j in range(3))
-    Xs, Ys, Ws, ds, xc, yc = (tsg[:, :, j] for j in range(6))
-    ok0 = (Ws[:, 0] > 0) & jnp.isfinite(Xs[:, 0]) & jnp.isfinite(Ys[:, 0])
+    X, Y, Wc = ([tv[:, k, j] for k in range(3)] for j in range(3))
+    Xs, Ys, Ws, ds, xc, yc = ([tsg[:, k, j] for k in range(3)] for j in range(6))
+    all3 = lambda f: f(0) & f(1) & f(2)
+    ok0 = (Ws[0] > 0) & jnp.isfinite(Xs[0]) & jnp.isfinite(Ys[0])
     lim = float(2 * max(W, H))
-    w0 = jnp.where(ok0, Ws[:, 0], 1.0)
-    ox = jnp.floor(jnp.clip(jnp.where(ok0, Xs[:, 0] / w0, 0.0), -lim, lim))
-    oy = jnp.floor(jnp.clip(jnp.where(ok0, Ys[:, 0] / w0, 0.0), -lim, lim))
-    lx = X - ox[:, None] * Wc
-    ly = Y - oy[:, None] * Wc
-    c = [(lx[:, k], ly[:, k], Wc[:, k]) for k in range(3)]
+    w0 = jnp.where(ok0, Ws[0], 1.0)
+    ox = jnp.floor(jnp.clip(jnp.where(ok0, Xs[0] / w0, 0.0), -lim, lim))
+    oy = jnp.floor(jnp.clip(jnp.where(ok0, Ys[0] / w0, 0.0), -lim, lim))
+    c = [(X[k] - ox * Wc[k], Y[k] - oy * Wc[k], Wc[k]) for k in range(3)]
     adj = [_cross(c[1], c[2]), _cross(c[2], c[0]), _cross(c[0], c[1])]
     det = c[0][0] * adj[0][0] + c[0][1] * adj[0][1] + c[0][2] * adj[0][2]
     det_s = jax.lax.stop_gradient(det)
@@ -82,41 +87,50 @@ def _setup(positions, faces, camera: Camera, cull_backfaces: bool, mask=None) ->
     valid = (jnp.abs(det_s) > tol * norms[0] * norms[1] * norms[2]) & jnp.isfinite(det_s)
     sgn = jnp.where(det_s < 0, -1.0, 1.0).astype(tv.dtype)
     edge = jnp.stack([sgn * adj[k][j] for k in range(3) for j in range(3)], axis=-1)
-    wsign = jnp.sign(Ws[:, 0]) * jnp.sign(Ws[:, 1]) * jnp.sign(Ws[:, 2])
+    wsign = jnp.sign(Ws[0]) * jnp.sign(Ws[1]) * jnp.sign(Ws[2])
     front = det_s * wsign < 0
     near, far = jax.lax.stop_gradient(camera.near), jax.lax.stop_gradient(camera.far)
-    valid = valid & ~jnp.all(ds < near, axis=-1) & ~jnp.all(ds > far, axis=-1)
-    for coord in (xc, yc):  # all three vertices outside one side plane of the frustum
-        valid = valid & ~jnp.all(coord > Ws, axis=-1) & ~jnp.all(coord < -Ws, axis=-1)
+    valid = valid & ~all3(lambda k: ds[k] < near) & ~all3(lambda k: ds[k] > far)
+    for q in (xc, yc):  # all three vertices outside one side plane of the frustum
+        valid = valid & ~all3(lambda k, q=q: q[k] > Ws[k]) & ~all3(lambda k, q=q: q[k] < -Ws[k])
     if cull_backfaces:
         valid = valid & front
     if mask is not None:
         valid = valid & mask
     # screen bounding box of pixel centres of the part in front of the near plane: the vertices
     # with depth >= near plus the points where edges cross the near plane (w > 0 at all of them).
-    nxt = jnp.array([1, 2, 0])
-    dn = ds - near
-    dj = dn[:, nxt]
-    crosses = (dn * dj) < 0
-    frac = jnp.where(crosses, dn / jnp.where(crosses, dn - dj, 1.0), 0.0)
+    nxt = (1, 2, 0)
+    dn = [d - near for d in ds]
+    crosses = [dn[k] * dn[nxt[k]] < 0 for k in range(3)]
+    frac = [
+        jnp.where(crosses[k], dn[k] / jnp.where(crosses[k], dn[k] - dn[nxt[k]], 1.0), 0.0)
+        for k in range(3)
+    ]
     big = float(4 * max(W, H) + 16)
-    use = jnp.concatenate([dn >= 0, crosses], axis=1)
-    ptw = jnp.concatenate([Ws, Ws + frac * (Ws[:, nxt] - Ws)], axis=1)
-    use = use & (ptw > 0)
-    safe_w = jnp.where(use, ptw, 1.0)
+    between = lambda q, k: q[k] + frac[k] * (q[nxt[k]] - q[k])  # on the edge k -> k + 1
+    use = [dn[k] >= 0 for k in range(3)] + crosses
+    ptw = Ws + [between(Ws, k) for k in range(3)]
+    use = [u & (w > 0) for u, w in zip(use, ptw, strict=True)]
+    safe_w = [jnp.where(u, w, 1.0) for u, w in zip(use, ptw, strict=True)]
     box = []
     for q in (Xs, Ys):
-        pt = jnp.concatenate([q, q + frac * (q[:, nxt] - q)], axis=1)
-        sq = jnp.clip(pt / safe_w, -big, big)
-        box.append(jnp.ceil(jnp.min(jnp.where(use, sq, big), axis=-1)))
-        box.append(jnp.floor(jnp.max(jnp.where(use, sq, -big), axis=-1)))
+        pt = q + [between(q, k) for k in range(3)]
+        sq = [jnp.clip(p / w, -big, big) for p, w in zip(pt, safe_w, strict=True)]
+        lo = [jnp.where(u, v, big) for u, v in zip(use, sq, strict=True)]
+        hi = [jnp.where(u, v, -big) for u, v in zip(use, sq, strict=True)]
+        box.append(jnp.ceil(functools.reduce(jnp.minimum, lo)))
+        box.append(jnp.floor(functools.reduce(jnp.maximum, hi)))
     x0, x1, y0, y1 = box
-    finite = jnp.all(jnp.isfinite(Xs) & jnp.isfinite(Ys) & jnp.isfinite(Ws), axis=-1)
-    valid = valid & jnp.any(use, axis=-1) & finite
+    finite = all3(lambda k: jnp.isfinite(Xs[k]) & jnp.isfinite(Ys[k]) & jnp.isfinite(Ws[k]))
+    valid = valid & functools.reduce(jnp.logical_or, use) & finite
     x0, y0 = jnp.maximum(x0, 0), jnp.maximum(y0, 0)
     x1, y1 = jnp.minimum(x1, W - 1), jnp.minimum(y1, H - 1)
-    bbox = jnp.stack([x0, y0, x1, y1], axis=-1).astype(jnp.int32)
-    return _Setup(edge, tv[:, :, 3], valid, front, bbox, jnp.stack([ox, oy], axis=-1))
+    # each column computed in a loop fusion of its own (materialized): fused into the table's
+    # concatenate, the setup ran as one branch per output entry, unvectorized
+    bbox = jnp.stack([materialize(v.astype(jnp.int32)) for v in (x0, y0, x1, y1)], axis=-1)
+    valid, front = materialize(valid), materialize(front)
+    vdepth = jnp.stack([tv[:, k, 3] for k in range(3)], axis=-1)
+    return _Setup(edge, vdepth, valid, front, bbox, jnp.stack([ox, oy], axis=-1))
 
 
 def _tile_counts(s: _Setup, tile: int):

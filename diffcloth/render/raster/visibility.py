@@ -62,8 +62,10 @@ def _windows(ftab, itab, ends, W: int, tile: int, budget: int, near, far):
 
 
 def window_budgets(width: int, height: int, max_tiles: int, tile_size: int = 2) -> tuple:
-    """Static window budgets of the visibility pass, smallest first: an eighth and one screen of
-    windows, then `max_tiles`; a frame runs the smallest that holds its windows.
+    """Static window budgets of the visibility pass, smallest first: a quarter and one screen of
+    windows, then `max_tiles`; a frame runs the smallest that holds its windows. (An eighth of a
+    screen, 2,048 windows at 256 x 256, was 50 short for the draped cloth of
+    benchmarks/peers/mitsuba_render.py, which then evaluated 8 x the windows it needs.)
     Below 128 x 128 pixels only `max_tiles` (as cheap there, and compiled once; also for a
     batch: on the main job's ten 64^2 images the ladder ran the render forward 0.69x and its
     gradient 0.78x, the fit step 0.90x, but compiled the step in 44 instead of 35 s of CPU,
@@ -71,7 +73,7 @@ def window_budgets(width: int, height: int, max_tiles: int, tile_size: int = 2) 
     screen = math.ceil(width / tile_size) * math.ceil(height / tile_size)
     if width * height < 128 * 128:
         return (int(max_tiles),)
-    small = [b for b in (screen // 8, screen) if b < int(max_tiles)]
+    small = [b for b in (screen // 4, screen) if b < int(max_tiles)]
     return tuple(sorted(set(small))) + (int(max_tiles),)
 
 
@@ -112,16 +114,22 @@ def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int, batch_axes
 
     def pass_(budget):
         w = _windows(ftab, itab, ends, W, tile, budget, near, far)
-        # the candidates' depths computed once (materialized), so that the edge functions are
-        # not re-evaluated inside every consumer fusion
-        depth = materialize(jnp.concatenate([d_depth.reshape(-1), w[0]]))
-        pix, tid = jnp.concatenate([d_pix, w[1]]), jnp.concatenate([d_tid, w[2]])
-        keep = depth < jnp.inf
-        pix = jnp.where(keep, pix, H * W)
-        zbuf = jnp.full((H * W,), jnp.inf, depth.dtype).at[pix].min(depth, mode="drop")
-        win = keep & (depth == zbuf.at[pix].get(mode="fill", fill_value=-1.0))
+        # the direct and the window candidates scattered one set after the other (concatenated,
+        # each of depth, pixel and id cost a pass); their depths computed once (materialized),
+        # so that the edge functions are not re-evaluated inside every consumer fusion
+        parts = []
+        for depth, pix, tid in ((d_depth.reshape(-1), d_pix, d_tid), w):
+            depth = materialize(depth)
+            keep = depth < jnp.inf
+            parts.append((depth, keep, jnp.where(keep, pix, H * W), tid))
+        zbuf = jnp.full((H * W,), jnp.inf, d_depth.dtype)
+        for depth, _, pix, _ in parts:
+            zbuf = zbuf.at[pix].min(depth, mode="drop")
         ids = jnp.full((H * W,), -1, jnp.int32)
-        return ids.at[jnp.where(win, pix, H * W)].max(tid, mode="drop")
+        for depth, keep, pix, tid in parts:
+            win = keep & (depth == zbuf.at[pix].get(mode="fill", fill_value=-1.0))
+            ids = ids.at[jnp.where(win, pix, H * W)].max(tid, mode="drop")
+        return ids
 
     budgets = window_budgets(W, H, max_tiles, tile)
     if len(budgets) == 1:
