@@ -622,39 +622,17 @@ def gpu_rows(gpu, cpu) -> list[list]:
                     _pick(c, key),
                 ]
             )
-    for r in gpu:
-        if r.get("bench") == "shading":
-            c = _first(cpu["shading"], bench="shading", mode=r["mode"])
-            rows.append(
-                [
-                    "shading",
-                    f"full render 256^2, {r['mode']}, forward (ms)",
-                    r["render_fwd_ms"],
-                    _pick(c, "render_fwd_ms"),
-                ]
-            )
-    for r in gpu:
-        if r.get("bench") == "interactive":
-            c = _first(cpu["interactive"], bench="interactive", mode=r["mode"])
-            rows.append(
-                [
-                    "interactive",
-                    f"frame of the default scene, {r['mode']} (fps)",
-                    r["fps"],
-                    _pick(c, "fps"),
-                ]
-            )
-    for r in gpu:
-        if r.get("bench") == "fit_step":
-            c = _first(cpu["fit_step"], bench="fit_step", config=r["config"], tree="new")
-            rows.append(
-                [
-                    "fit step",
-                    f"value + gradient, {r['config']} (ms)",
-                    r["step_ms"],
-                    _pick(c, "step_ms"),
-                ]
-            )
+    # (stage, bench, the key naming the case, label, the figure's key, more keys of the CPU line)
+    per_case = (
+        ("shading", "shading", "mode", "full render 256^2, {}, forward (ms)", "render_fwd_ms", {}),
+        ("interactive", "interactive", "mode", "frame of the default scene, {} (fps)", "fps", {}),
+        ("fit step", "fit_step", "config", "value + gradient, {} (ms)", "step_ms", {"tree": "new"}),
+    )
+    for stage, bench, case, label, key, more in per_case:
+        for r in gpu:
+            if r.get("bench") == bench:
+                c = _first(cpu[bench], bench=bench, **{case: r[case]}, **more)
+                rows.append([stage, label.format(r[case]), r[key], _pick(c, key)])
     g = _first(gpu, bench="compile", run="cold")
     c = [r for r in cpu["compile"] if r.get("bench") == "compile" and r.get("run") == "cold"]
     rows.append(
