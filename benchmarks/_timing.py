@@ -87,6 +87,7 @@ def meta(script: str, **extra) -> dict:
         cpus=os.cpu_count(),
         load_1min=None if load is None else round(load, 2),
         utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        xla_flags=os.environ.get("XLA_FLAGS", ""),  # `import diffcloth` adds its CPU loop option
         **extra,
     )
 

@@ -16,6 +16,8 @@ values, targets rendered at [truth] (as `diffcloth fit` does). One JSON line per
   compile_s  first value_and_grad call (trace + compile + run), s
   forward_ms loss value only (jitted), median
   step_ms    value and gradient (jitted), median;  backward_ms = step_ms - forward_ms
+  xla_flags  XLA_FLAGS in that process after its imports (`import diffcloth` adds its CPU loop
+             option since the eighth session; older trees do not),
 and one line per config with bench "fit_step_ratio": step_ratio, forward_ratio, backward_ratio,
 compile_ratio (new / base, below 1: faster). With --single: the "new" lines only (tree "this",
 commit from git where there is one), no base and no ratio.
@@ -37,7 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ("configs/drape_fit.toml", "configs/experiments/drape_material.toml")
 
 CHILD = r"""
-import json, sys, time, tomllib
+import json, os, sys, time, tomllib
 from pathlib import Path
 sys.path.insert(0, sys.argv[4])
 import jax, jax.numpy as jnp
@@ -69,7 +71,8 @@ t_step = timed(step, params, repeats=repeats)
 t_fwd = timed(fwd, params, repeats=repeats)
 back = round(t_step.median_ms - t_fwd.median_ms, 3)
 print(json.dumps(dict(compile_s=round(compile_s, 3), forward_ms=t_fwd.median_ms,
-                      step_ms=t_step.median_ms, backward_ms=back)))
+                      step_ms=t_step.median_ms, backward_ms=back,
+                      xla_flags=os.environ.get("XLA_FLAGS", ""))))
 """
 
 
@@ -114,7 +117,7 @@ def _single(args, out) -> None:
         keys = ("compile_s", "forward_ms", "step_ms", "backward_ms")
         best = {k: min(r[k] for r in rs) for k in keys}
         row = dict(bench="fit_step", config=config, tree="this", commit=_commit(ROOT))
-        emit(dict(row, rounds=args.rounds, **best), out)
+        emit(dict(row, rounds=args.rounds, **best, xla_flags=rs[-1]["xla_flags"]), out)
 
 
 def main():
@@ -168,6 +171,7 @@ def main():
                             commit=commits[name],
                             rounds=args.rounds,
                             **best[name],
+                            xla_flags=rs[-1]["xla_flags"],
                         ),
                         out,
                     )

@@ -108,6 +108,7 @@ def test_vjp_equals_autodiff_float64(both64):
         )
 
 
+@pytest.mark.slow  # ~19 s; the float64 VJP test stays in the default suite
 def test_vjp_equals_autodiff_float32():
     args, cot = _case(jnp.float32), _cotangents(jnp.float32)
     (ref, g_ref), (hand, g_hand) = _vjps(_reference, args, cot), _vjps(sphere_impact, args, cot)

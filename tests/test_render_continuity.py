@@ -55,6 +55,7 @@ def test_mip_level_gradient_matches_fd():
     assert abs(g - fd) <= 1e-6 * abs(fd)
 
 
+@pytest.mark.slow  # ~37 s (compile); the mip-level FD test stays in the default suite
 def test_one_frame_render_is_continuous_with_default_textures():
     """Render stage alone (minnaert, default textures, flipped grid, 32^2): d(loss)/d(shift of
     the control net) equals the central FD, and the FD has converged: a jump J in the image would

@@ -108,6 +108,7 @@ def test_silhouette_gradients():
     np.testing.assert_allclose(float(gc[0]), fd, rtol=0.05)
 
 
+@pytest.mark.slow  # ~19 s; the silhouette-gradient test stays in the default suite
 def test_composite_by_depth_and_occlusion_gradient():
     center, radius = jnp.array([-9.0, 2.0, 0.0]), jnp.asarray(5.0)
     img = scene(center, radius, -3.0)  # quad behind the sphere
