@@ -74,7 +74,8 @@ def tune_xla_cpu(small_loop_bytes: int = SMALL_LOOP_BYTES) -> bool:
 
     No change when `DIFFCLOTH_XLA_TUNING` is "off"/"0"/"none", when XLA_FLAGS already names the
     threshold (the user's value wins), or when a JAX backend has already started (XLA read its
-    flags then; the change would not take effect). GPU backends ignore the option.
+    flags then; the change would not take effect). Only XLA's CPU compiler reads the option (not
+    yet checked on a GPU run).
     """
     if os.environ.get("DIFFCLOTH_XLA_TUNING", "").strip().lower() in ("off", "0", "none"):
         return False

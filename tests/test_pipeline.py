@@ -65,6 +65,7 @@ def test_video_shape_and_range(small_scene):
     assert float(jnp.abs(video[0, -1] - video[0, 0]).mean()) > 1e-3
 
 
+@pytest.mark.slow  # 45-70 s, nearly all compile (10-minute budget); CI's slow stage runs it
 def test_whole_pipeline_gradient_matches_finite_differences(small_scene, video_loss_and_grad):
     """d(video loss)/d(each material parameter), AD vs central FD in float64 (log-space steps)."""
     value_and_grad = video_loss_and_grad

@@ -279,6 +279,7 @@ def test_silhouette_budget_overflow_falls_back_to_full_search():
 
 
 # ROBUSTNESS row 21: empty scene -> background, finite loss, zero (not NaN) gradients
+@pytest.mark.slow  # ~40 s of compile (10-minute budget); test_robustness's row-21 test is default
 def test_empty_scene():
     cam = persp_camera()
     behind = quad(-1.0, 1.0, -1.0, 1.0, z=6.0)  # behind the eye (eye at z = 4)
@@ -466,7 +467,7 @@ def _ids_and_windows(positions, faces, camera):
     return ids.reshape(camera.height, camera.width), need, R._visibility(s, camera, 2, 8), direct
 
 
-@pytest.mark.parametrize("big", [False, True])
+@pytest.mark.parametrize("big", [pytest.param(False, marks=pytest.mark.slow), True])  # False: 13 s
 def test_visibility_of_mixed_triangle_sizes_matches_brute_force(big):
     """128 x 128 pixels. Sub-pixel triangles (tested directly) and larger ones (windows): without
     the two big triangles the windows fit in the smallest budget, with them (behind, covering
