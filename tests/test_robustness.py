@@ -256,20 +256,22 @@ def test_row_15_collapsed_control_net_renders_finite():
     _check_frame(net, point, 0.3, EYE)
 
 
-@pytest.mark.parametrize(
-    "eye, target, what",
-    [
-        ((0.1, 0.05, 0.1), (0.0, -0.3, -1.0), "inside_cloth"),  # eye just above the sheet
-        ((0.0, 0.8, 0.2), (0.0, 0.6, -1.0), "inside_sphere"),  # eye inside the sphere
-        ((0.0, 0.8, 0.0), (0.0, 0.6, -1.0), "at_sphere_centre"),
-        ((0.0, 0.3, 0.1), (0.0, 0.0, -0.5), "cloth_behind_camera"),  # half the cloth behind
-    ],
-)
-def test_row_19_camera_inside_cloth_or_sphere_and_triangles_behind(eye, target, what):
-    img, _, _ = _check_frame(flat_net(), jnp.asarray([0.0, 0.8, 0.0]), 0.5, eye, target)
-    assert np.all((img[..., 3] >= 0) & (img[..., 3] <= 1)), what
-    if what in ("inside_cloth", "cloth_behind_camera"):
-        assert img[..., 3].max() > 0, what  # the cloth in front is drawn
+ROW_19_VIEWS = [
+    ((0.1, 0.05, 0.1), (0.0, -0.3, -1.0), "inside_cloth"),  # eye just above the sheet
+    ((0.0, 0.8, 0.2), (0.0, 0.6, -1.0), "inside_sphere"),  # eye inside the sphere
+    ((0.0, 0.8, 0.0), (0.0, 0.6, -1.0), "at_sphere_centre"),
+    ((0.0, 0.3, 0.1), (0.0, 0.0, -0.5), "cloth_behind_camera"),  # half the cloth behind
+]
+
+
+def test_row_19_camera_inside_cloth_or_sphere_and_triangles_behind():
+    # the four views in one test: one worker compiles the frame and its gradient once (as
+    # parameters, pytest-xdist ran them on both workers, each compiling it: ~50 s apiece)
+    for eye, target, what in ROW_19_VIEWS:
+        img, _, _ = _check_frame(flat_net(), jnp.asarray([0.0, 0.8, 0.0]), 0.5, eye, target)
+        assert np.all((img[..., 3] >= 0) & (img[..., 3] <= 1)), what
+        if what in ("inside_cloth", "cloth_behind_camera"):
+            assert img[..., 3].max() > 0, what  # the cloth in front is drawn
 
 
 def test_row_19_camera_aimed_at_sphere_centre_has_finite_gradient():
