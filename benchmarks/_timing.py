@@ -88,8 +88,17 @@ def meta(script: str, **extra) -> dict:
         load_1min=None if load is None else round(load, 2),
         utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         xla_flags=os.environ.get("XLA_FLAGS", ""),  # `import diffcloth` adds its CPU loop option
+        malloc_tuned=_malloc_tuned(),  # `import diffcloth` keeps freed memory mapped (glibc)
         **extra,
     )
+
+
+def _malloc_tuned():
+    try:
+        from diffcloth.runtime import malloc_tuned
+    except ImportError:  # a baseline checkout from before the allocator setting
+        return False
+    return malloc_tuned()
 
 
 def emit(row: dict, out=None) -> dict:

@@ -19,13 +19,14 @@ from diffcloth.pipeline import (
     simulate_and_render_checked,
 )
 from diffcloth.render import Camera, Light
-from diffcloth.runtime import tune_xla_cpu
+from diffcloth.runtime import tune_malloc, tune_xla_cpu
 from diffcloth.scene import Scene, build_scene, load_scene
 from diffcloth.shapes import Plane, Sphere
 
 __version__ = "0.1.0"
 
 tune_xla_cpu()  # no import above starts a JAX backend; XLA reads XLA_FLAGS once, when one starts
+tune_malloc()  # freed buffers stay mapped for the next call of a compiled program
 
 __all__ = [
     "PARAMETERS",

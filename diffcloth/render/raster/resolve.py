@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffcloth._math import materialize, materialize_value, safe_div
+from diffcloth._math import materialize, materialize_grad, materialize_value, safe_div
 from diffcloth.render.camera import Camera
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH, Fragments
 from diffcloth.render.raster.silhouette import _crossings, _pairs, default_silhouette_budget
@@ -33,7 +33,16 @@ def _resolve(
     o = s.origin[tri]
     Y, X = jnp.meshgrid(jnp.arange(H, dtype=dtype), jnp.arange(W, dtype=dtype), indexing="ij")
     lx, ly = X - o[..., 0], Y - o[..., 1]
-    e = [E[..., 3 * k] * lx + E[..., 3 * k + 1] * ly + E[..., 3 * k + 2] for k in range(3)]
+    # the edge functions' cotangent is computed once per pixel (materialize_grad): the per-pixel
+    # cotangent of the 9 edge coefficients is built from it, and XLA's CPU fusion otherwise
+    # re-derives the whole barycentric / depth backward chain for each of the 9
+    e3 = materialize_grad(
+        jnp.stack(
+            [E[..., 3 * k] * lx + E[..., 3 * k + 1] * ly + E[..., 3 * k + 2] for k in range(3)],
+            axis=-1,
+        )
+    )
+    e = [e3[..., k] for k in range(3)]
     total = e[0] + e[1] + e[2]
     ok = mask & (jax.lax.stop_gradient(total) > 0)
     inv = safe_div(jnp.ones((), dtype), jnp.where(ok, total, 1.0))
@@ -165,5 +174,8 @@ def interpolate(attributes, fragments: Fragments, faces):
     # pixel (a gather of the pixel's vertex ids and one per corner cost four passes)
     corners = materialize_value(attributes[faces])[tri]  # (H, W, 3, ...)
     b = fragments.barycentric.astype(attributes.dtype)
-    out = sum(b[..., k, None] * corners[:, :, k] for k in range(3))
+    # a sum over the corner axis: its transpose is one broadcast product per corner and
+    # channel (summed slices transposed to pads, which XLA's CPU loops evaluate branch by branch)
+    b = b.reshape(b.shape + (1,) * (corners.ndim - 3))
+    out = jnp.sum(b * corners, axis=2)
     return jnp.where((fragments.triangle_id >= 0)[..., None], out, 0.0)
