@@ -1,5 +1,6 @@
 """Run-time switches: XLA's small-loop threshold set at import, and the run environment record."""
 
+import functools
 import json
 import os
 import subprocess
@@ -95,13 +96,21 @@ def test_no_change_once_a_backend_has_started(monkeypatch):
     assert os.environ["XLA_FLAGS"] == ""
 
 
-SMALL_NET_GRADIENT = """
+# One script per fresh process, run with the settings on and off (each process's results cached
+# for both tests below): a small net's float64 material gradient (XLA's small-loop option) and a
+# float32 channel sum (the YNN option), with what XLA built and whether malloc was tuned.
+FRESH = """
 import json, os
-import diffcloth  # sets the threshold unless told not to
+import diffcloth  # sets XLA_FLAGS and the allocator unless told not to
 import jax, jax.numpy as jnp
-from diffcloth import physics
-jax.config.update("jax_enable_x64", True)
+from diffcloth import physics, runtime
 
+x = jnp.arange(64 * 64 * 3, dtype=jnp.float32).reshape(64, 64, 3) / 1000.0
+f = jax.jit(lambda x: jnp.sum(jnp.sin(x) * x, axis=-1))  # a reduction over a 3-channel axis
+ynn = f.lower(x).compile().as_text().count("__ynn_fusion")
+channel_sum = f(x).tolist()
+
+jax.config.update("jax_enable_x64", True)
 net = physics.grid_net(5, 6, (0.5, 0.4), pinned="top_row")
 sim = physics.make_sim(1 / 60, num_substeps=8)
 s0 = physics.rest_state(net)
@@ -115,20 +124,18 @@ text = grad.lower(physics.make_material()).compile().as_text()
 g = grad(physics.make_material())
 print(json.dumps(dict(flags=os.environ.get("XLA_FLAGS", ""),
                       hoisted=text.count('xla_cpu_small_call="true"'),
-                      grad={k: float(v) for k, v in vars(g).items() if jnp.ndim(v) == 0})))
+                      grad={k: float(v) for k, v in vars(g).items() if jnp.ndim(v) == 0},
+                      ynn=ynn, value=channel_sum, malloc=runtime.malloc_tuned())))
 """
 
 
-def _small_net_gradient(tuning: str) -> dict:
+@functools.cache
+def _fresh(tuning: str) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env["DIFFCLOTH_XLA_TUNING"] = tuning
+    env["DIFFCLOTH_XLA_TUNING"] = env["DIFFCLOTH_MALLOC_TUNING"] = tuning
     env["JAX_PLATFORMS"] = "cpu"
     out = subprocess.run(
-        [sys.executable, "-c", SMALL_NET_GRADIENT],
-        env=env,
-        capture_output=True,
-        text=True,
-        check=True,
+        [sys.executable, "-c", FRESH], env=env, capture_output=True, text=True, check=True
     ).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -137,7 +144,7 @@ def test_import_compiles_small_net_loops_as_one_function_with_the_same_gradient(
     """Fresh processes: with the option (the default), XLA compiles the small net's substep scans
     as one function; the material gradient equals the one from the thunk runtime (option off),
     which the physics tests check against finite differences."""
-    on, off = _small_net_gradient("on"), _small_net_gradient("off")
+    on, off = _fresh("on"), _fresh("off")
     assert SMALL_LOOP_KEY in on["flags"] and SMALL_LOOP_KEY not in off["flags"]
     assert on["hoisted"] > off["hoisted"]  # XLA's own 1 kB threshold may take in a tiny loop
     assert on["grad"].keys() == off["grad"].keys() and len(on["grad"]) >= 5
@@ -151,35 +158,11 @@ def test_environment_records_the_xla_flags(monkeypatch):
     assert runtime.environment()["xla_flags"] == "--xla_backend_extra_options=a=1"
 
 
-CHANNEL_SUM = """
-import json, os
-import diffcloth  # sets XLA_FLAGS and the allocator unless told not to
-import jax, jax.numpy as jnp
-from diffcloth import runtime
-
-x = jnp.arange(64 * 64 * 3, dtype=jnp.float32).reshape(64, 64, 3) / 1000.0
-f = jax.jit(lambda x: jnp.sum(jnp.sin(x) * x, axis=-1))  # a reduction over a 3-channel axis
-text = f.lower(x).compile().as_text()
-print(json.dumps(dict(flags=os.environ.get("XLA_FLAGS", ""), ynn=text.count("__ynn_fusion"),
-                      malloc=runtime.malloc_tuned(), value=f(x).tolist())))
-"""
-
-
-def _channel_sum(tuning: str) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env["DIFFCLOTH_XLA_TUNING"] = env["DIFFCLOTH_MALLOC_TUNING"] = tuning
-    env["JAX_PLATFORMS"] = "cpu"
-    out = subprocess.run(
-        [sys.executable, "-c", CHANNEL_SUM], env=env, capture_output=True, text=True, check=True
-    ).stdout
-    return json.loads(out.strip().splitlines()[-1])
-
-
 def test_import_keeps_reductions_out_of_ynn_fusions_and_tunes_malloc():
     """Fresh processes: with the options (the default) XLA builds no YNNPACK fusion for a
     channel sum and glibc's malloc keeps freed memory; the values equal XLA's defaults' to
     float32 rounding (the two sum in different orders)."""
-    on, off = _channel_sum("on"), _channel_sum("off")
+    on, off = _fresh("on"), _fresh("off")
     np.testing.assert_allclose(on["value"], off["value"], rtol=1e-6)
     assert not off["malloc"] and YNN_FUSION_FLAG not in off["flags"]
     import platform
