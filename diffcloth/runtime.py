@@ -152,7 +152,7 @@ def tune_malloc() -> bool:
         return True
     if os.environ.get("DIFFCLOTH_MALLOC_TUNING", "").strip().lower() in ("off", "0", "none"):
         return False
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+    if not _glibc():
         return False
     import ctypes
 
@@ -166,6 +166,14 @@ def tune_malloc() -> bool:
         mallopt(_M_MMAP_MAX, 0)
     )
     return _malloc_tuned
+
+
+def _glibc() -> bool:
+    """The C library is glibc (asked of the C library itself: no file is read)."""
+    try:
+        return (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc")
+    except (AttributeError, ValueError, OSError):  # not a POSIX system, or not glibc
+        return False
 
 
 def malloc_tuned() -> bool:

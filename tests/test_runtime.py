@@ -168,6 +168,7 @@ def test_import_keeps_reductions_out_of_ynn_fusions_and_tunes_malloc():
     import platform
 
     assert on["malloc"] == (platform.system() == "Linux" and platform.libc_ver()[0] == "glibc")
+    assert on["malloc"] == runtime._glibc()
     if runtime._jaxlib_has_ynn_flag():  # the jaxlib this was checked on: the flag is added
         assert YNN_NO_REDUCE in on["flags"]
         assert off["ynn"] > 0 and on["ynn"] == 0
