@@ -11,7 +11,8 @@
   XLA_FLAGS alone.
 - `tune_malloc()`: runs once at `import diffcloth` on Linux with glibc: keeps freed memory in the
   process heap instead of returning it to the system, so the buffers of each call of a compiled
-  program reuse pages already mapped (256^2 render gradient 38 -> 22 ms on the 2-core CPU).
+  program reuse pages already mapped (256^2 render gradient 38.2 -> 32.9 ms on the 2-core CPU,
+  `benchmarks/render_profile.py` with `DIFFCLOTH_MALLOC_TUNING=off` and without).
   `DIFFCLOTH_MALLOC_TUNING=off` leaves the allocator alone.
 - `environment()`: versions, backend, devices and float64 flag, written next to every fit result.
 """
@@ -47,10 +48,10 @@ SMALL_LOOP_BYTES = 2_000_000
 
 YNN_FUSION_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
 # jaxlib 0.10's XLA hands reductions (e.g. a sum over a pixel's 3 or 4 colour channels, common in
-# the rasterizer's backward) to YNNPACK fusions; on the 2-core CPU these ran 5-10x slower than
-# XLA's own loops (256^2 interpolate forward 5.5 -> 0.7 ms). "-reduce" takes reductions out of
-# the default list. Added only for the jaxlib releases where the flag was checked to exist: XLA
-# aborts on flags it does not know.
+# the rasterizer's backward) to YNNPACK fusions; on the 2-core CPU these ran slower than XLA's
+# own loops (`benchmarks/render_profile.py`: 256^2 render forward 15.3 -> 10.3 ms). "-reduce"
+# takes reductions out of the default list. Added only for the jaxlib releases where the flag
+# was checked to exist: XLA aborts on flags it does not know.
 YNN_NO_REDUCE = f"{YNN_FUSION_FLAG}=-reduce"
 YNN_JAXLIB = ((0, 10, 2), (0, 11, 0))  # [first checked, first not checked)
 
