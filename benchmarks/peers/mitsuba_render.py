@@ -30,6 +30,13 @@ One JSON line per case:
     mean_abs_diff_ref (vs a 64 spp Mitsuba image), coverage_abs_diff (alpha), mean_abs_diff_interior
     (pixels fully covered in both, 3 px from silhouettes), grad_cosine (cosine between the two
     gradient fields) and grad_translate_cosine (between their sums: the gradient of a translation).
+  bench "peers_render_interleaved" (`--rounds`, default 20): the forwards timed turn about, per
+    round 10 diffcloth forwards, 10 Mitsuba 1 spp forwards and 3 diffcloth gradients, each block
+    after 3 untimed calls (`interleaved`): fwd_ms and
+    fwd_ms_mitsuba (medians over all calls), grad_ms (median; grad_ms_p90), ratio_fwd (median
+    over rounds of the rounds' median ratio; ratio_fwd_p10 / _p90) and rounds_diffcloth_faster.
+    The separate medians above are taken minutes apart; on a shared VM whose speed drifts by
+    10-20 % they can disagree with this row, which compares like with like.
 
 Mitsuba's LLVM variant needs libLLVM >= 17 on x86 (older versions fail with "Cannot select:
 fmaximum"); the script points DRJIT_LIBLLVM_PATH at the newest /usr/lib/*/libLLVM-*.so unless it
@@ -45,6 +52,7 @@ import json
 import os
 import re
 import sys
+import time
 from pathlib import Path
 
 import jax
@@ -156,7 +164,10 @@ def diffcloth_case(surface, repeats):
         fwd_prepared_ms=round(t_fp * 1e3, 2),
         prepared_max_abs_diff=float(np.max(np.abs(img_p - img))),
     )
-    return row, img, g
+    calls = dict(
+        fwd=lambda: jax.block_until_ready(fwd(pos)), grad=lambda: jax.block_until_ready(grad(pos))
+    )
+    return row, img, g, calls
 
 
 # --------------------------------------------------------------------------------- Mitsuba
@@ -320,6 +331,54 @@ def mitsuba_cases(surface, dc_row, dc_img, dc_grad, repeats, spps, save_dir=None
     return rows
 
 
+def interleaved(dc_calls, ms: MitsubaScene, rounds: int, per_round: int = 10, warmup: int = 3):
+    """Forward timings taken turn about, in blocks: each round times `per_round` diffcloth
+    forwards, then `per_round` Mitsuba 1 spp forwards (unchanged positions), then 3 diffcloth
+    gradients, each block after `warmup` untimed calls. Both renderers thus see the same machine
+    conditions over the run (on a shared VM the speed drifts by 10-20 % within minutes, the size
+    of the margin between them), each measured warm: on this VM the first calls after the other
+    renderer ran, or after 0.1-0.5 s idle, are 1.3-2x slower, for diffcloth more than for
+    Mitsuba (a cold-start effect outside both programs, seen with XLA on one thread too).
+    The ratio's median and spread over rounds are reported, with the share of rounds in which
+    diffcloth's forward was the faster."""
+    ms.set_positions(ms.v)
+    dc_f, mi_f, dc_g, ratios = [], [], [], []
+
+    def clock(fn, n):
+        for _ in range(warmup):
+            fn()
+        out = []
+        for _ in range(n):
+            t = time.perf_counter()
+            fn()
+            out.append((time.perf_counter() - t) * 1e3)
+        return out
+
+    for _ in range(rounds):
+        a = clock(dc_calls["fwd"], per_round)
+        b = clock(lambda: ms.forward(1), per_round)
+        dc_g += clock(dc_calls["grad"], 3)
+        dc_f += a
+        mi_f += b
+        ratios.append(float(np.median(a) / np.median(b)))
+    q = lambda v, p: round(float(np.percentile(v, p)), 3)
+    return dict(
+        bench="peers_render_interleaved",
+        rounds=rounds,
+        per_round=per_round,
+        warmup=warmup,
+        spp=1,
+        fwd_ms=round(float(np.median(dc_f)), 2),
+        fwd_ms_mitsuba=round(float(np.median(mi_f)), 2),
+        grad_ms=round(float(np.median(dc_g)), 2),
+        grad_ms_p90=round(float(np.percentile(dc_g, 90)), 2),
+        ratio_fwd=q(ratios, 50),
+        ratio_fwd_p10=q(ratios, 10),
+        ratio_fwd_p90=q(ratios, 90),
+        rounds_diffcloth_faster=float(np.mean(np.asarray(ratios) < 1.0)),
+    )
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
@@ -327,6 +386,9 @@ def main(argv=None):
     parser.add_argument("--out", help="also write the JSON lines to this file")
     parser.add_argument("--spp", type=int, nargs="+", default=[1, 16], help="Mitsuba spp cases")
     parser.add_argument("--save-images", help="folder for render_images.npz (both images)")
+    parser.add_argument(
+        "--rounds", type=int, default=20, help="interleaved rounds (0: none; --quick: 5)"
+    )
     args = parser.parse_args(argv)
     repeats = 3 if args.quick else args.repeats
     meta = _meta_line(
@@ -335,12 +397,17 @@ def main(argv=None):
     lines = [meta]
     print(json.dumps(meta), flush=True)
     surface = draped_surface()
-    dc_row, dc_img, dc_grad = diffcloth_case(surface, repeats)
+    dc_row, dc_img, dc_grad, dc_calls = diffcloth_case(surface, repeats)
     lines.append(dc_row)
     print(json.dumps(dc_row), flush=True)
     for row in mitsuba_cases(
         surface, dc_row, dc_img, dc_grad, repeats, args.spp, save_dir=args.save_images
     ):
+        lines.append(row)
+        print(json.dumps(row), flush=True)
+    rounds = min(args.rounds, 5) if args.quick else args.rounds
+    if rounds > 0:
+        row = interleaved(dc_calls, MitsubaScene(surface), rounds)
         lines.append(row)
         print(json.dumps(row), flush=True)
     if args.out:
