@@ -245,6 +245,20 @@ def render_section(lines) -> list[str]:
             f"{_f(dc['prepared_max_abs_diff'])}). Its ratio is against Mitsuba's forward with "
             "unchanged positions, which reuses its BVH but still casts its rays.",
         ]
+    inter = next((r for r in lines if r.get("bench") == "peers_render_interleaved"), None)
+    if inter:
+        out += [
+            "",
+            f"Turn about (the like-for-like forward comparison): {inter['rounds']} rounds, each "
+            f"{inter['per_round']} diffcloth forwards, {inter['per_round']} Mitsuba "
+            f"{inter['spp']} spp forwards and 3 diffcloth gradients, each block after "
+            f"{inter.get('warmup', 0)} untimed calls: forward {_f(inter['fwd_ms'])} ms against "
+            f"{_f(inter['fwd_ms_mitsuba'])} ms, ratio {_f(inter['ratio_fwd'])} (median over "
+            f"rounds; 10th-90th percentile {_f(inter['ratio_fwd_p10'])}-"
+            f"{_f(inter['ratio_fwd_p90'])}; diffcloth faster in "
+            f"{round(100 * inter['rounds_diffcloth_faster'])} % of the rounds); gradient "
+            f"{_f(inter['grad_ms'])} ms (90th percentile {_f(inter['grad_ms_p90'])} ms).",
+        ]
     return out
 
 
