@@ -11,16 +11,6 @@ os.environ["DIFFCLOTH_CACHE"] = "off"  # CLI calls in tests leave the user's com
 # (`DIFFCLOTH_XLA_TUNING=on pytest`; the whole suite passes with it on). test_runtime checks, in
 # fresh processes, that `import diffcloth` sets it and that XLA then compiles small loops as one.
 os.environ.setdefault("DIFFCLOTH_XLA_TUNING", "off")
-# The suite is compile-bound, and most of a CPU compile is LLVM optimizing code that then runs
-# for milliseconds: LLVM's -O0 here cuts the suite's CPU time by about a quarter (16 vs 21 min;
-# the test_robustness frame's gradient compiles in 11 s instead of 18 s). It changes no IEEE
-# semantics (XLA's CPU backend does not use fast-math); users' programs keep XLA's default level
-# (test_runtime's fresh processes and every benchmark run at it). Opt out:
-# DIFFCLOTH_TEST_XLA_OPT=default, or name the option in XLA_FLAGS.
-if os.environ.get("DIFFCLOTH_TEST_XLA_OPT", "0") != "default":
-    _flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_backend_optimization_level" not in _flags:
-        os.environ["XLA_FLAGS"] = f"{_flags} --xla_backend_optimization_level=0".strip()
 
 # One JAX compilation cache per test run, shared by the xdist workers (the controller makes the
 # folder; workers inherit the variable) and removed at the end: tests that build the same program
@@ -47,6 +37,25 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # file, whose tests then compile the file's shared jitted programs (e.g. test_robustness's frame
 # and its gradient, ~50 s) on both workers at once. This scheduler cuts at the nearest file
 # boundary instead, and splits a file only when nothing else is left to share.
+
+
+def pytest_configure(config):
+    """LLVM -O0 for a run that leaves the slow tests out (the default `-m 'not slow'`).
+
+    That run is compile-bound, and most of a CPU compile is LLVM optimizing code that then runs
+    for milliseconds: -O0 cuts its CPU time by about a quarter (16 vs 21 min; test_robustness's
+    frame gradient compiles in 11 s instead of 18 s), while compiled code runs up to 10x slower.
+    It changes no IEEE semantics (XLA's CPU backend does not use fast-math). Runs that select
+    slow tests (long rollouts and fits, bound by run time) keep XLA's default level, as do
+    users' programs, every benchmark and test_runtime's fresh processes. Opt out:
+    DIFFCLOTH_TEST_XLA_OPT=default, or name the option in XLA_FLAGS. Runs before any JAX
+    backend starts (XLA reads XLA_FLAGS once); xdist workers inherit it and run this again."""
+    markexpr = config.getoption("markexpr", "") or ""
+    if markexpr.strip() != "not slow" or os.environ.get("DIFFCLOTH_TEST_XLA_OPT") == "default":
+        return
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_backend_optimization_level" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=0".strip()
 
 
 WHOLE_FILE_TESTS = 16  # a file's pending tail shorter than this is not split between workers
