@@ -31,14 +31,6 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
-# ----------------------------------------------------------------------------- xdist scheduling
-# pytest-xdist's work stealing hands each worker half of the collection, and an idle worker then
-# steals the back half of the other's queue, cutting wherever that falls: often inside a test
-# file, whose tests then compile the file's shared jitted programs (e.g. test_robustness's frame
-# and its gradient, ~50 s) on both workers at once. This scheduler cuts at the nearest file
-# boundary instead, and splits a file only when nothing else is left to share.
-
-
 def pytest_configure(config):
     """LLVM -O0 for a run that leaves the slow tests out (the default `-m 'not slow'`).
 
@@ -58,7 +50,15 @@ def pytest_configure(config):
         os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=0".strip()
 
 
-WHOLE_FILE_TESTS = 16  # a file's pending tail shorter than this is not split between workers
+# ----------------------------------------------------------------------------- xdist scheduling
+# pytest-xdist's work stealing hands each worker half of the collection, and an idle worker then
+# steals the back half of the other's queue, cutting wherever that falls: often inside a test
+# file, whose tests then compile the file's shared jitted programs (e.g. test_robustness's frame
+# and its gradient, ~50 s) on both workers at once. This scheduler cuts at the nearest file
+# boundary instead, and splits a file only when nothing else is left to share and at least
+# WHOLE_FILE_TESTS of its tests are pending (a shorter tail stays with its worker: the other
+# would compile the same programs again, costing more than it waits).
+WHOLE_FILE_TESTS = 16
 
 
 @pytest.hookimpl(tryfirst=True)
