@@ -463,7 +463,17 @@ def pixel_rays(camera: Camera):
       (origins (H, W, 3) in m, directions (H, W, 3) unit). Perspective rays diverge from the eye;
       parallel (orthographic, oblique, axonometric) rays share one direction. Differentiable in
       the camera matrices.
+
+    A camera whose matrices are concrete (not traced: a fixed camera closed over by a jitted
+    render) gets its rays computed once while tracing (`jax.ensure_compile_time_eval`) and
+    embedded in the program as constants; a traced camera (fitted, vmapped) is computed in the
+    program as usual. Same values either way.
     """
+    with jax.ensure_compile_time_eval():
+        return _pixel_rays(camera)
+
+
+def _pixel_rays(camera: Camera):
     dtype = camera.view.dtype
     ndc = pixel_centers(camera.width, camera.height, dtype)
     inv = jnp.linalg.inv(camera.projection @ camera.view)
