@@ -486,8 +486,10 @@ def render(
             img + (1.0 - img[..., 3:]) * plane_rgba,
         )
     if background is not None:
-        bg = jnp.reshape(jnp.asarray(background, img.dtype), (1, 1, 3))
-        img = jnp.concatenate([img[..., :3] + (1.0 - img[..., 3:]) * bg, img[..., 3:]], axis=-1)
+        # rgb + (1 - alpha) bg and alpha + (1 - alpha) 0 = alpha: one elementwise pass (XLA's CPU
+        # backend evaluates a concatenate of the two parts entry by entry)
+        bg = jnp.concatenate([jnp.asarray(background, img.dtype), jnp.zeros(1, img.dtype)])
+        img = img + (1.0 - img[..., 3:]) * bg.reshape(1, 1, 4)
     if return_cloth_mask:
         return img, cloth_mask
     return img

@@ -10,7 +10,7 @@ from diffcloth._math import materialize, materialize_grad, materialize_value, sa
 from diffcloth.render.coverage import edge_coverage, pair_share
 from diffcloth.render.raster.buffers import BACKGROUND_DEPTH
 from diffcloth.render.raster.scan import _batch_max, _compact, _ranks
-from diffcloth.render.raster.triangle_setup import _Setup
+from diffcloth.render.raster.triangle_setup import _Setup, setup_table
 
 _STEPS = ((1, 0), (-1, 0), (0, 1), (0, -1))  # +x, -x, +y, -y
 
@@ -45,9 +45,7 @@ def _walk(s: _Setup, sil, nbr, start, active, a_front, vertical, px, py, walk: i
     (four carries ran about nine small fusions per level; unrolled, XLA's fusion recomputes
     the levels' chains inside each other)."""
     dtype = s.edge.dtype
-    if s.table is None:
-        table = materialize(jnp.concatenate([s.edge, s.vdepth, s.origin], axis=-1))
-    table = jax.lax.stop_gradient(table if s.table is None else s.table)  # origin at 12, 13
+    table = jax.lax.stop_gradient(setup_table(s))  # origin at 12, 13
     # the triangle across each flat edge, -1 where the edge is a silhouette (the walk stops)
     nxt = materialize(jnp.where(sil, -1, nbr).astype(jnp.int32))
     one = jnp.ones((), dtype)

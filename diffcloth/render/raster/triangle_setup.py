@@ -39,6 +39,16 @@ class _Setup(NamedTuple):
     table: jax.Array | None = None  # (m, 14) edge, vdepth, origin in one buffer (`_materialized`)
 
 
+def setup_table(s: _Setup):
+    """(m, 14) per triangle: edge rows (9), vertex depths (3), origin (2, no gradient); the
+    buffer `_materialized` keeps, else built (materialized) here. The visibility windows and
+    the silhouette walk gather their triangle's row from it."""
+    if s.table is not None:
+        return s.table
+    origin = jax.lax.stop_gradient(s.origin).astype(s.edge.dtype)
+    return materialize(jnp.concatenate([s.edge, s.vdepth, origin], axis=-1))
+
+
 def _materialized(s: _Setup) -> _Setup:
     """`s` computed once into two buffers (floats: edge, vdepth, origin, also kept as `table`
     for the per-pixel and per-window gathers; ints: bbox, valid, front), its fields slices of

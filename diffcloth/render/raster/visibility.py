@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from diffcloth._math import materialize
 from diffcloth.render.camera import Camera
 from diffcloth.render.raster.scan import _batch_max, _cummax, _cumsum
-from diffcloth.render.raster.triangle_setup import DIRECT_PIXELS, _Setup, _tile_counts
+from diffcloth.render.raster.triangle_setup import DIRECT_PIXELS, _Setup, _tile_counts, setup_table
 
 
 def _candidate_depth(E, dep, org, px, py, keep, near, far):
@@ -106,10 +106,7 @@ def _visibility(s: _Setup, camera: Camera, tile: int, max_tiles: int, batch_axes
 
     nx, ntiles = _tile_counts(s, tile)
     ends = _cumsum(jnp.where(direct, 0, ntiles))
-    if s.table is None:
-        ftab = materialize(jnp.concatenate([E, dep, s.origin.astype(E.dtype)], axis=-1))
-    else:
-        ftab = jax.lax.stop_gradient(s.table)
+    ftab = jax.lax.stop_gradient(setup_table(s))
     itab = materialize(jnp.concatenate([s.bbox, nx[:, None]], axis=-1))
 
     def pass_(budget):
