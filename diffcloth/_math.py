@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 EPS = {jnp.dtype("float32"): 1e-12, jnp.dtype("float64"): 1e-30}
 
@@ -63,6 +64,12 @@ def safe_atan2(y, x, eps: float | None = None):
     eps = dtype_eps(x) if eps is None else eps
     ok = (x * x + y * y) > eps
     return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, x, 1.0)), 0.0)
+
+
+def static_zero(x) -> bool:
+    """True when x is concrete (not traced) and every entry is zero: a term it scales can be left
+    out of the program. A traced x (fitted, vmapped) is never static."""
+    return not isinstance(x, jax.core.Tracer) and not np.any(np.asarray(x))
 
 
 def _scatter_copy(x):

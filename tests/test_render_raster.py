@@ -495,3 +495,29 @@ def test_visibility_of_mixed_triangle_sizes_matches_brute_force(big):
     dropped = dropped.reshape(size, size)
     assert won.sum() > 3 and np.any(dropped != want)
     np.testing.assert_array_equal(dropped[won], want[won])
+
+
+def test_reach_matches_a_breadth_first_search():
+    """`_reach` (a dilation over the neighbour columns) against a breadth-first search that
+    crosses only internal edges: reached within `walk` steps of a silhouette edge."""
+    rng = np.random.default_rng(3)
+    n = 9  # a 9 x 9 grid of quads, two triangles each, some culled or turned away
+    v = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = v[:-1, :-1].ravel(), v[:-1, 1:].ravel(), v[1:, :-1].ravel(), v[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, d], 1)])
+    m = faces.shape[0]
+    nbr = np.asarray(R.edge_neighbors(faces))
+    valid, front = rng.random(m) > 0.03, rng.random(m) > 0.05
+    zeros = jnp.zeros((m, 9))
+    s = R._Setup(zeros, zeros[:, :3], jnp.asarray(valid), jnp.asarray(front), None, None)
+    sil = np.asarray(R._silhouette(s, jnp.asarray(nbr)))
+    for walk in (0, 1, 3):
+        _, reach = R._reach(s, jnp.asarray(nbr), walk)
+        dist = np.where(sil.any(1), 0, 10**6)
+        for _ in range(walk):  # relax across internal (non-silhouette) edges
+            for t in range(m):
+                for k in range(3):
+                    if not sil[t, k]:
+                        dist[t] = min(dist[t], dist[nbr[t, k]] + 1)
+        np.testing.assert_array_equal(np.asarray(reach), dist <= walk)
+    assert 0 < int(np.sum(reach)) < m

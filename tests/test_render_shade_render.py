@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from diffcloth._math import static_zero
 from diffcloth.render import lights as Lm
 from diffcloth.render import shade as S
 from diffcloth.render import textures as T
@@ -92,3 +93,29 @@ def test_render_bad_mode(scene):
     surf, cam, lights, app = scene
     with pytest.raises(ValueError, match="shading"):
         render(surf, cam, lights, "toon", app)
+
+
+def test_fixed_zero_specular_skips_the_highlight_with_the_same_image(scene):
+    """A concrete all-zero specular colour leaves Blinn-Phong's highlight out of the program;
+    the image and the gradient w.r.t. the diffuse colour equal those of the full model, whose
+    specular is traced (here: passed as an argument) and zero."""
+    surf, cam, lights, app = scene
+
+    def image(spec, diffuse):
+        a = dataclasses.replace(app, diffuse=diffuse, specular=spec)
+        return render(surf, cam, lights, "phong", a, background=BG)
+
+    def loss(spec, diffuse):
+        return jnp.sum(image(spec, diffuse)[..., :3] ** 2)
+
+    zero = jnp.zeros(3)
+    fixed = jax.jit(jax.value_and_grad(lambda d: loss(zero, d)))
+    traced = jax.jit(jax.value_and_grad(loss, argnums=1))
+    assert static_zero(np.zeros(3)) and not static_zero(np.array([0.0, 0.1, 0.0]))
+    (v0, g0), (v1, g1) = fixed(app.diffuse), traced(zero, app.diffuse)
+    np.testing.assert_allclose(v0, v1, rtol=1e-6)
+    np.testing.assert_allclose(g0, g1, rtol=1e-6, atol=1e-9)
+    assert float(jnp.abs(g0).max()) > 0
+    # the highlight is left out: no power (exp of a log) in the fixed program's shading
+    assert "exponential" not in fixed.lower(app.diffuse).as_text()
+    assert "exponential" in traced.lower(zero, app.diffuse).as_text()

@@ -462,40 +462,32 @@ def pixel_rays(camera: Camera):
     Returns:
       (origins (H, W, 3) in m, directions (H, W, 3) unit). Perspective rays diverge from the eye;
       parallel (orthographic, oblique, axonometric) rays share one direction. Differentiable in
-      the camera matrices.
-
-    A camera whose matrices are concrete (not traced: a fixed camera closed over by a jitted
-    render) gets its rays computed once while tracing (`jax.ensure_compile_time_eval`) and
-    embedded in the program as constants; a traced camera (fitted, vmapped) is computed in the
-    program as usual. Same values either way.
+      the camera matrices. A concrete (fixed) camera's rays are computed while tracing
+      (`jax.ensure_compile_time_eval`) and embedded as constants; a traced one's in the program.
     """
     with jax.ensure_compile_time_eval():
-        return _pixel_rays(camera)
-
-
-def _pixel_rays(camera: Camera):
-    dtype = camera.view.dtype
-    ndc = pixel_centers(camera.width, camera.height, dtype)
-    inv = jnp.linalg.inv(camera.projection @ camera.view)
-    x, y = ndc[..., 0], ndc[..., 1]
-    # written out per component: XLA's CPU backend runs a contraction or reduction over a
-    # 4- or 3-long minor axis of a per-pixel array several times slower than the plain sums
-    base = [inv[i, 0] * x + inv[i, 1] * y + inv[i, 3] for i in range(4)]
-    near_h = [b - inv[i, 2] for i, b in enumerate(base)]
-    far_h = [b + inv[i, 2] for i, b in enumerate(base)]
-    p0 = [near_h[i] / near_h[3] for i in range(3)]
-    d = [far_h[i] / far_h[3] - p0[i] for i in range(3)]
-    sq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-    ok = sq > EPS.get(jnp.dtype(dtype), 1e-12)  # as safe_normalize: +y for a zero vector
-    n = jnp.sqrt(jnp.where(ok, sq, 1.0))
-    fallback = (0.0, 1.0, 0.0)
-    # each component computed in a loop fusion of its own (value materialized, derivatives
-    # untouched): fused into the stack, the chain ran as one branch per entry
-    d = [
-        materialize_value(jnp.where(ok, jnp.where(ok, d[i], 1.0) / n, fallback[i]))
-        for i in range(3)
-    ]
-    return jnp.stack(p0, axis=-1), jnp.stack(d, axis=-1).astype(dtype)
+        dtype = camera.view.dtype
+        ndc = pixel_centers(camera.width, camera.height, dtype)
+        inv = jnp.linalg.inv(camera.projection @ camera.view)
+        x, y = ndc[..., 0], ndc[..., 1]
+        # written out per component: XLA's CPU backend runs a contraction or reduction over a
+        # 4- or 3-long minor axis of a per-pixel array several times slower than the plain sums
+        base = [inv[i, 0] * x + inv[i, 1] * y + inv[i, 3] for i in range(4)]
+        near_h = [b - inv[i, 2] for i, b in enumerate(base)]
+        far_h = [b + inv[i, 2] for i, b in enumerate(base)]
+        p0 = [near_h[i] / near_h[3] for i in range(3)]
+        d = [far_h[i] / far_h[3] - p0[i] for i in range(3)]
+        sq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        ok = sq > EPS.get(jnp.dtype(dtype), 1e-12)  # as safe_normalize: +y for a zero vector
+        n = jnp.sqrt(jnp.where(ok, sq, 1.0))
+        fallback = (0.0, 1.0, 0.0)
+        # each component computed in a loop fusion of its own (value materialized, derivatives
+        # untouched): fused into the stack, the chain ran as one branch per entry
+        d = [
+            materialize_value(jnp.where(ok, jnp.where(ok, d[i], 1.0) / n, fallback[i]))
+            for i in range(3)
+        ]
+        return jnp.stack(p0, axis=-1), jnp.stack(d, axis=-1).astype(dtype)
 
 
 def project(points, camera: Camera):

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import materialize, safe_div
+from diffcloth._math import materialize, safe_div, static_zero
 from diffcloth.render.lights import Appearance, Lights, light_vectors
 from diffcloth.render.rays import ray_sphere
 from diffcloth.render.textures import (
@@ -138,12 +138,6 @@ def _ambient(appearance, lights, like, ambient_visibility=None):
     return amb if ambient_visibility is None else amb * ambient_visibility[..., None]
 
 
-def static_zero(x) -> bool:
-    """True when x is concrete (not traced) and every entry is zero: a term it scales can be left
-    out of the program. A traced x (fitted, vmapped) is never static."""
-    return not isinstance(x, jax.core.Tracer) and not np.any(np.asarray(x))
-
-
 def lambert(normals, positions, lights: Lights, visibility=None):
     """Diffuse light (..., 3): sum_i radiance_i max(N.L_i, 0) (`blinn_phong`'s first output)."""
     l, rad = _light_at(lights, positions, visibility)
@@ -152,10 +146,7 @@ def lambert(normals, positions, lights: Lights, visibility=None):
 
 
 def _lit(albedo, normals, eyes, positions, lights, appearance, visibility=None, amb_vis=None):
-    if static_zero(appearance.specular):
-        # a matte material with a fixed zero specular colour (not fitted): no highlight to compute
-        # (half vectors, powers; the eye vectors and, for directional lights, the positions are
-        # then not needed either)
+    if static_zero(appearance.specular):  # fixed matte material: no highlight (nor eye vectors)
         diffuse = lambert(normals, positions, lights, visibility)
         return _bc(albedo, diffuse) * (_ambient(appearance, lights, diffuse, amb_vis) + diffuse)
     diffuse, specular = blinn_phong(normals, eyes, positions, lights, appearance, visibility)
