@@ -159,6 +159,8 @@ def test_fixed_camera_rays_are_computed_while_tracing():
     # the matrix inverse (an LU factorization, "getrf") is in the traced program only
     assert "getrf" not in closed.lower().as_text()
     assert "getrf" in traced.lower(cam).as_text()
+    big = C.make_camera((0.3, 1.0, 2.0), (0.0, 0.0, 0.0), (0, 1, 0), width=600, height=500)
+    assert "getrf" in jax.jit(lambda: C.pixel_rays(big)).lower().as_text()  # over 512^2: no
     for got in (closed(), traced(cam)):
         for a, b in zip(got, eager, strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)

@@ -20,6 +20,10 @@ renderer itself, outside the timing) from the mesh moved 2 cm along +x; vertex n
 One JSON line per case:
   bench "peers_render_diffcloth": fwd_ms, grad_ms (forward + backward), shading, width, height;
     prepare_ms (`render.prepare_frame`: rasterization of the static geometry and camera, once),
+    fwd_traced_ms (the same forward with the camera and the appearance passed as traced
+    arguments, as a fit that moves them compiles it: `fwd_ms`'s program is specialized on the
+    fixed camera, whose rays are computed while tracing, and on the fixed zero specular colour,
+    which leaves the highlight out; traced_max_abs_diff: its image against fwd_ms's),
     fwd_prepared_ms (`render.render_prepared`: shading, antialiasing and background of the
     prepared frame, i.e. the forward of an appearance-only change; the rasterization is NOT in
     this figure) and prepared_max_abs_diff (its image against the full forward's).
@@ -31,10 +35,12 @@ One JSON line per case:
     (pixels fully covered in both, 3 px from silhouettes), grad_cosine (cosine between the two
     gradient fields) and grad_translate_cosine (between their sums: the gradient of a translation).
   bench "peers_render_interleaved" (`--rounds`, default 20): the forwards timed turn about, per
-    round 10 diffcloth forwards, 10 Mitsuba 1 spp forwards and 3 diffcloth gradients, each block
-    after 3 untimed calls (`interleaved`): fwd_ms and
-    fwd_ms_mitsuba (medians over all calls), grad_ms (median; grad_ms_p90), ratio_fwd (median
-    over rounds of the rounds' median ratio; ratio_fwd_p10 / _p90) and rounds_diffcloth_faster.
+    round 10 diffcloth forwards, 10 Mitsuba 1 spp forwards, 3 diffcloth gradients and 10
+    diffcloth forwards with the camera and appearance traced, each block after 3 untimed calls
+    (`interleaved`): fwd_traced_ms and ratio_fwd_traced (_p10 / _p90: against the round's
+    Mitsuba), fwd_ms and fwd_ms_mitsuba (medians over all calls), grad_ms (median;
+    grad_ms_p90), ratio_fwd (median over rounds of the rounds' median ratio; ratio_fwd_p10 /
+    _p90) and rounds_diffcloth_faster.
     The separate medians above are taken minutes apart; on a shared VM whose speed drifts by
     10-20 % they can disagree with this row, which compares like with like.
 
@@ -149,6 +155,16 @@ def diffcloth_case(surface, repeats):
     )
     img_p = np.asarray(jax.block_until_ready(fwd_p(prep)))
     t_fp = _median(lambda: jax.block_until_ready(fwd_p(prep)), repeats)
+    # the same forward with the camera and the appearance traced (as when a fit moves them):
+    # no rays computed while tracing, the Blinn-Phong highlight kept (multiplied by zero)
+    general = jax.jit(
+        lambda p, cam, a: render(
+            dataclasses.replace(surface, positions=p), cam, lights, "phong", a,
+            background=(0.0, 0.0, 0.0),
+        )
+    )  # fmt: skip
+    img_g = np.asarray(jax.block_until_ready(general(pos, camera, app)))
+    t_fg = _median(lambda: jax.block_until_ready(general(pos, camera, app)), repeats)
     g = np.asarray(jax.block_until_ready(grad(pos)))
     t_g = _median(lambda: jax.block_until_ready(grad(pos)), max(1, repeats // 2))
     row = dict(
@@ -162,10 +178,14 @@ def diffcloth_case(surface, repeats):
         grad_ms=round(t_g * 1e3, 2),
         prepare_ms=round(t_prep * 1e3, 2),
         fwd_prepared_ms=round(t_fp * 1e3, 2),
+        fwd_traced_ms=round(t_fg * 1e3, 2),
+        traced_max_abs_diff=float(np.max(np.abs(img_g - img))),
         prepared_max_abs_diff=float(np.max(np.abs(img_p - img))),
     )
     calls = dict(
-        fwd=lambda: jax.block_until_ready(fwd(pos)), grad=lambda: jax.block_until_ready(grad(pos))
+        fwd=lambda: jax.block_until_ready(fwd(pos)),
+        grad=lambda: jax.block_until_ready(grad(pos)),
+        traced=lambda: jax.block_until_ready(general(pos, camera, app)),
     )
     return row, img, g, calls
 
@@ -334,7 +354,8 @@ def mitsuba_cases(surface, dc_row, dc_img, dc_grad, repeats, spps, save_dir=None
 def interleaved(dc_calls, ms: MitsubaScene, rounds: int, per_round: int = 10, warmup: int = 3):
     """Forward timings taken turn about, in blocks: each round times `per_round` diffcloth
     forwards, then `per_round` Mitsuba 1 spp forwards (unchanged positions), then 3 diffcloth
-    gradients, each block after `warmup` untimed calls. Both renderers thus see the same machine
+    gradients, then `per_round` diffcloth forwards with the camera and appearance traced
+    (`fwd_traced_ms`), each block after `warmup` untimed calls. Both renderers thus see the same machine
     conditions over the run (on a shared VM the speed drifts by 10-20 % within minutes, the size
     of the margin between them), each measured warm: on this VM the first calls after the other
     renderer ran, or after 0.1-0.5 s idle, are 1.3-2x slower, for diffcloth more than for
@@ -342,7 +363,7 @@ def interleaved(dc_calls, ms: MitsubaScene, rounds: int, per_round: int = 10, wa
     The ratio's median and spread over rounds are reported, with the share of rounds in which
     diffcloth's forward was the faster."""
     ms.set_positions(ms.v)
-    dc_f, mi_f, dc_g, ratios = [], [], [], []
+    dc_f, mi_f, dc_g, dc_t, ratios, ratios_t = [], [], [], [], [], []
 
     def clock(fn, n):
         for _ in range(warmup):
@@ -358,9 +379,12 @@ def interleaved(dc_calls, ms: MitsubaScene, rounds: int, per_round: int = 10, wa
         a = clock(dc_calls["fwd"], per_round)
         b = clock(lambda: ms.forward(1), per_round)
         dc_g += clock(dc_calls["grad"], 3)
+        c = clock(dc_calls["traced"], per_round)
         dc_f += a
         mi_f += b
+        dc_t += c
         ratios.append(float(np.median(a) / np.median(b)))
+        ratios_t.append(float(np.median(c) / np.median(b)))
     q = lambda v, p: round(float(np.percentile(v, p)), 3)
     return dict(
         bench="peers_render_interleaved",
@@ -376,6 +400,10 @@ def interleaved(dc_calls, ms: MitsubaScene, rounds: int, per_round: int = 10, wa
         ratio_fwd_p10=q(ratios, 10),
         ratio_fwd_p90=q(ratios, 90),
         rounds_diffcloth_faster=float(np.mean(np.asarray(ratios) < 1.0)),
+        fwd_traced_ms=round(float(np.median(dc_t)), 2),
+        ratio_fwd_traced=q(ratios_t, 50),
+        ratio_fwd_traced_p10=q(ratios_t, 10),
+        ratio_fwd_traced_p90=q(ratios_t, 90),
     )
 
 

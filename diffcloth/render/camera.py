@@ -17,6 +17,7 @@ Projections (SEEDS.md section 6):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 
@@ -463,15 +464,15 @@ def pixel_rays(camera: Camera):
       (origins (H, W, 3) in m, directions (H, W, 3) unit). Perspective rays diverge from the eye;
       parallel (orthographic, oblique, axonometric) rays share one direction. Differentiable in
       the camera matrices. A concrete (fixed) camera's rays are computed while tracing
-      (`jax.ensure_compile_time_eval`) and embedded as constants; a traced one's in the program.
+      (`jax.ensure_compile_time_eval`), constants up to 512^2 pixels (6 MB); else in the program.
     """
-    with jax.ensure_compile_time_eval():
+    small = camera.width * camera.height <= 512 * 512
+    with jax.ensure_compile_time_eval() if small else contextlib.nullcontext():
         dtype = camera.view.dtype
         ndc = pixel_centers(camera.width, camera.height, dtype)
         inv = jnp.linalg.inv(camera.projection @ camera.view)
         x, y = ndc[..., 0], ndc[..., 1]
-        # written out per component: XLA's CPU backend runs a contraction or reduction over a
-        # 4- or 3-long minor axis of a per-pixel array several times slower than the plain sums
+        # per component: XLA's CPU loops run a 3- or 4-long minor-axis sum several times slower
         base = [inv[i, 0] * x + inv[i, 1] * y + inv[i, 3] for i in range(4)]
         near_h = [b - inv[i, 2] for i, b in enumerate(base)]
         far_h = [b + inv[i, 2] for i, b in enumerate(base)]
@@ -481,8 +482,7 @@ def pixel_rays(camera: Camera):
         ok = sq > EPS.get(jnp.dtype(dtype), 1e-12)  # as safe_normalize: +y for a zero vector
         n = jnp.sqrt(jnp.where(ok, sq, 1.0))
         fallback = (0.0, 1.0, 0.0)
-        # each component computed in a loop fusion of its own (value materialized, derivatives
-        # untouched): fused into the stack, the chain ran as one branch per entry
+        # each component in a loop of its own (fused into the stack: one branch per entry)
         d = [
             materialize_value(jnp.where(ok, jnp.where(ok, d[i], 1.0) / n, fallback[i]))
             for i in range(3)
