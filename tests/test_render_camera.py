@@ -168,7 +168,7 @@ def test_fixed_camera_rays_are_computed_while_tracing():
     def total(view):
         return jnp.sum(C.pixel_rays(dataclasses.replace(cam, view=view))[1][..., 0])
 
-    g = jax.grad(total)(cam.view)
+    g = jax.jit(jax.grad(total))(cam.view)
     assert np.all(np.isfinite(g)) and float(np.abs(g).max()) > 0
 
 
