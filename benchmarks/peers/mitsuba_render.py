@@ -130,9 +130,12 @@ def diffcloth_case(surface, repeats):
     lights = make_lights(ambient=(0.0, 0.0, 0.0), directional=[(LIGHT_DIR, (1.0, 1.0, 1.0), 1.0)])
     app = make_appearance(diffuse=ALBEDO, specular=(0.0, 0.0, 0.0), ambient=(0.0, 0.0, 0.0))
 
-    def image(pos):
+    def frame(pos, cam, a):
         s = dataclasses.replace(surface, positions=pos)
-        return render(s, camera, lights, "phong", app, background=(0.0, 0.0, 0.0))
+        return render(s, cam, lights, "phong", a, background=(0.0, 0.0, 0.0))
+
+    def image(pos):  # camera and appearance fixed: the program is specialized on them
+        return frame(pos, camera, app)
 
     fwd = jax.jit(image)
     pos = surface.positions
@@ -157,12 +160,7 @@ def diffcloth_case(surface, repeats):
     t_fp = _median(lambda: jax.block_until_ready(fwd_p(prep)), repeats)
     # the same forward with the camera and the appearance traced (as when a fit moves them):
     # no rays computed while tracing, the Blinn-Phong highlight kept (multiplied by zero)
-    general = jax.jit(
-        lambda p, cam, a: render(
-            dataclasses.replace(surface, positions=p), cam, lights, "phong", a,
-            background=(0.0, 0.0, 0.0),
-        )
-    )  # fmt: skip
+    general = jax.jit(frame)
     img_g = np.asarray(jax.block_until_ready(general(pos, camera, app)))
     t_fg = _median(lambda: jax.block_until_ready(general(pos, camera, app)), repeats)
     g = np.asarray(jax.block_until_ready(grad(pos)))
