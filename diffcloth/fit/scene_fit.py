@@ -143,7 +143,7 @@ def _lm_stages(scene, loss: str, schedule):
     sched = make_schedule(schedule)
     levels = num_pyramid_levels(scene.image_shape, sched.num_levels)
     frames = scene.video_shape[1]
-    dtype = np.dtype(scene.material.stretch.dtype)
+    dtype = np.dtype(scene.material.density.dtype)
     args, names, priors = [], [], []
     for st in list(sched.stages) + [None]:
         priors.append(st is not None and st.frames < 1.0)  # a frame window hides parameters
@@ -389,9 +389,9 @@ def scene_identifiability(
     targets = np.asarray(targets)
     if targets.ndim == 4 and len(scene.cameras) == 1:
         targets = targets[None]
-    targets = jnp.asarray(targets, scene.material.stretch.dtype)
+    targets = jnp.asarray(targets, scene.material.density.dtype)
     video_shape = targets.shape
-    dtype = np.dtype(scene.material.stretch.dtype)
+    dtype = np.dtype(scene.material.density.dtype)
     # Residual layout of the engine (4 pyramid levels when the image allows): reuse its compiled
     # Jacobian with weights selecting the full-resolution level over every frame.
     levels = num_pyramid_levels(scene.image_shape, 4)
