@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -39,7 +40,7 @@ def _fit(args) -> int:
     from diffcloth.fit.interrupt import catch_interrupts
 
     print(f"diffcloth fit {args.config} -> {args.out}", flush=True)
-    with catch_interrupts(message=False) as stop:
+    with catch_interrupts() as stop:
         summary = run_fit_config(
             args.config,
             args.out,
@@ -48,6 +49,7 @@ def _fit(args) -> int:
             devices=args.devices,
             overwrite=args.overwrite,
             resume=args.resume,
+            init_from=args.init_from,
             stop=stop,
         )
     status = summary.get("status")
@@ -58,7 +60,7 @@ def _fit(args) -> int:
             f"{summary['out_dir']} --resume",
             file=sys.stderr,
         )
-        return 130
+        return 128 + (getattr(stop, "signum", None) or 2)  # SIGINT 130, SIGTERM 143
     if summary.get("diagnosis"):
         print(f"  stopped on a non-finite loss; stage check: {summary['diagnosis']}")
     for name, row in summary["params"].items():
@@ -118,7 +120,6 @@ BENCHMARKS = ("physics", "surface", "render", "shading", "rigid", "memory")
 def _bench(args) -> int:
     """Run the stage benchmarks of a source checkout (benchmarks/*.py); each prints JSON lines."""
     import shlex
-    import subprocess
 
     root = Path(__file__).resolve().parents[1] / "benchmarks"
     if not root.is_dir():
@@ -136,23 +137,46 @@ def _bench(args) -> int:
             file=sys.stderr,
         )
         return 2
-    out = None if args.out is None else Path(args.out)
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
+    out = None
+    if args.out is not None:  # checked, locked and written as a whole, like every --out
+        from diffcloth.outdir import OutputDir
+
+        scripts = [("benchmark script", root / f"{st}.py") for st in stages]
+        out = OutputDir(args.out, overwrite=args.overwrite, inputs=scripts)
     for stage in stages:
         cmd = [sys.executable, str(root / f"{stage}.py")]
         if args.quick and "--quick" in (root / f"{stage}.py").read_text():
             cmd.append("--quick")
         cmd += shlex.split(args.args or "")
         print(f"# {' '.join(cmd)}", flush=True)
-        res = subprocess.run(cmd, capture_output=out is not None, text=True)
+        code, stdout = _child(cmd, capture=out is not None)
         if out is not None:
-            (out / f"{stage}.jsonl").write_text(res.stdout)
-            print(res.stdout, end="", flush=True)
-        if res.returncode:
-            print(f"error: benchmark {stage} failed (exit {res.returncode})", file=sys.stderr)
+            (out.tmp / f"{stage}.jsonl").write_text(stdout)
+            print(stdout, end="", flush=True)
+        if code:
+            kept = "; nothing written to --out (an older result there is unchanged)" if out else ""
+            if out is not None:
+                out.discard()
+            print(f"error: benchmark {stage} failed (exit {code}){kept}", file=sys.stderr)
             return 1
+    if out is not None:
+        out.commit()
     return 0
+
+
+def _child(cmd, *, capture: bool) -> tuple[int, str]:
+    """Run a child process; a signal that aborts this command stops it too."""
+    import subprocess
+
+    from diffcloth import signals
+
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE if capture else None, text=True)
+    hook = signals.at_abort(proc.kill)
+    try:
+        stdout, _ = proc.communicate()
+    finally:
+        signals.forget(hook)
+    return proc.returncode, stdout or ""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -212,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="small sizes, fewer repeats")
     b.add_argument("--out", default=None, help="also write DIR/<stage>.jsonl")
     b.add_argument(
+        "--overwrite", action="store_true", help="replace a non-empty --out folder (as a whole)"
+    )
+    b.add_argument(
         "--args", default=None, help='extra arguments for the script(s), e.g. "--repeats 3"'
     )
     b.set_defaults(func=_bench)
@@ -227,6 +254,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="continue from --out/checkpoint.npz (written every 10 steps and on Ctrl-C/SIGTERM); "
         "ends where an uninterrupted fit with the same steps ends",
+    )
+    f.add_argument(
+        "--init-from",
+        metavar="CHECKPOINT",
+        default=None,
+        help="start a new fit from the best parameters of an earlier fit's checkpoint.npz (or "
+        "its folder), e.g. after its config or targets changed, where --resume refuses",
     )
     f.add_argument("--x64", action="store_true", help="fit in float64")
     f.add_argument(
@@ -261,9 +295,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Run the CLI; returns the exit code: 0 done, 1 failed (blow-up, non-finite fit, internal
-    error), 2 bad usage or config (a one-line message naming the key/file/option), 130
-    interrupted. `--debug` shows the traceback instead."""
+    error), 2 bad usage or config (a one-line message naming the key/file/option), 130 / 143
+    interrupted by SIGINT / SIGTERM (`diffcloth.signals`). `--debug` shows the traceback instead."""
     args = build_parser().parse_args(argv)
+    from diffcloth.signals import handle_signals
+
+    with handle_signals() as sig:  # SIGINT / SIGTERM for every command (diffcloth.signals)
+        code = _run(args)
+    if sig.signum is not None and argv is None:  # our own process: skip the teardown, where
+        sys.stdout.flush()  # XLA's threads can crash a process interrupted mid-call
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+def _run(args) -> int:
     debug = getattr(args, "debug", False)
     import warnings
 

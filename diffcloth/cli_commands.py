@@ -65,7 +65,7 @@ def _simulate(args) -> int:
 
     from diffcloth import memory, physics
     from diffcloth.config import build_physics, load_config
-    from diffcloth.outdir import OutputDir
+    from diffcloth.outdir import OutputDir, config_inputs
     from diffcloth.physics.rollout import ADVICE
     from diffcloth.pipeline import split_colliders
     from diffcloth.scene import build_bodies
@@ -86,7 +86,7 @@ def _simulate(args) -> int:
     scene = build_physics(config)
     bodies, two_way = build_bodies(config)
     net, sim, material = scene.net, scene.sim, scene.material
-    out = OutputDir(args.out, overwrite=args.overwrite)
+    out = OutputDir(args.out, overwrite=args.overwrite, inputs=config_inputs(args.config))
     print(
         f"diffcloth simulate {args.config}: net {net.rows}x{net.cols}, {num_frames} frames, "
         f"{sim.num_substeps} substeps/frame, {sim.integrator}, {len(bodies)} rigid bodies",
@@ -213,7 +213,7 @@ def _render(args) -> int:
     from diffcloth.config import load_config
     from diffcloth.experiment import video_strip
     from diffcloth.io import save_png, save_video
-    from diffcloth.outdir import OutputDir
+    from diffcloth.outdir import OutputDir, config_inputs
     from diffcloth.physics.rollout import ADVICE
     from diffcloth.scene import build_scene
 
@@ -238,7 +238,7 @@ def _render(args) -> int:
     scene = build_scene(config, overrides=overrides or None)
     T, k = scene.num_frames, scene.frame_stride
     h, w = scene.image_shape
-    out = OutputDir(args.out, overwrite=args.overwrite)
+    out = OutputDir(args.out, overwrite=args.overwrite, inputs=config_inputs(args.config))
     print(
         f"diffcloth render {args.config}: {T} frames (every {k}), {len(scene.cameras)} camera(s) "
         f"{w}x{h}, shading {scene.shading}, level {scene.level} (lod {config.render.lod}), "

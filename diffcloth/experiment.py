@@ -198,6 +198,7 @@ def run_fit_config(
     extra_sections: Mapping[str, str] | None = None,
     overwrite: bool = False,
     resume: bool = False,
+    init_from=None,
     stop=None,
     checkpoint_every: int = 10,
 ) -> dict:
@@ -213,7 +214,10 @@ def run_fit_config(
     Args:
       overwrite: replace a non-empty `out_dir` (as a whole: no stale file survives).
       resume: continue the fit from `out_dir`/checkpoint.npz (written by an earlier run of the
-        same config, interrupted or not); the result equals that of an uninterrupted run.
+        same config, interrupted or not); the result equals that of an uninterrupted run. A
+        checkpoint of another problem (the config's values or the targets changed; see
+        `diffcloth.fit.problem`), or a damaged one, is refused, naming the file and what changed.
+      init_from: a checkpoint.npz (or its folder) whose best parameters start a new fit.
       stop: an event (`is_set()`) that interrupts the fit after the current step (see
         `diffcloth.fit.interrupt.catch_interrupts`): the checkpoint and a partial report marked
         "interrupted" are written, and the summary's status is "interrupted".
@@ -223,8 +227,15 @@ def run_fit_config(
     Raises:
       ConfigError, UsageError, MemoryLimitError (a ValueError each) for bad input, before any work.
     """
-    from diffcloth import fit as dcfit
     from diffcloth import memory, scene
+    from diffcloth.fit.problem import (
+        check_same_problem,
+        fit_inputs,
+        initial_from_checkpoint,
+        problem_record,
+        read_checkpoint,
+        stamp_checkpoint,
+    )
     from diffcloth.outdir import OutputDir, UsageError
 
     config_path = Path(config_path)
@@ -255,12 +266,24 @@ def run_fit_config(
         hint="lower [render] width/height, [sim] num_frames, the net size or multistart",
     )
     sc = scene.build_scene(config)
+    if init_from is not None:  # a new fit from an earlier fit's parameters (--init-from)
+        if resume:
+            raise UsageError("--init-from starts a new fit and --resume continues one: give one")
+        try:
+            init_from, initial, note = initial_from_checkpoint(init_from, settings, sc)
+        except ValueError as err:
+            raise UsageError(str(err)) from None
+        settings = dataclasses.replace(settings, initial=initial)
+        extra_sections = {**(extra_sections or {}), "Initial values": note}
     _check_values(sc, settings.truth, "truth")
     _check_values(sc, settings.initial, "fit.initial")
     targets = None
     if settings.targets is not None:
         targets = load_targets(settings, sc)
-    out = OutputDir(out_dir, overwrite=overwrite, resume=resume)
+    problem = problem_record(config_path, targets, smoke=smoke)
+    out = OutputDir(
+        out_dir, overwrite=overwrite, resume=resume, inputs=fit_inputs(config_path, init_from)
+    )
     ckpt = None
     if resume:
         path = out.path / "checkpoint.npz"
@@ -270,7 +293,8 @@ def run_fit_config(
                 f"--resume: no checkpoint {str(path)!r}; run without --resume to start afresh"
             )
         try:
-            ckpt = dcfit.load_checkpoint(path)
+            ckpt = read_checkpoint(path)
+            check_same_problem(ckpt, path, problem, config_path)
         except ValueError as err:
             out.discard()
             raise UsageError(f"--resume: {err}") from None
@@ -282,6 +306,7 @@ def run_fit_config(
     except BaseException:
         out.discard()
         raise
+    stamp_checkpoint(out.tmp / "checkpoint.npz", problem)  # what a --resume must match
     out.commit()
     summary["out_dir"] = str(out.path)
     return summary

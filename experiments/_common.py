@@ -91,4 +91,7 @@ def cli(main, default_config: str, doc: str | None = None) -> None:
     ap.add_argument("config", nargs="?", default=str(ROOT / default_config))
     ap.add_argument("--smoke", action="store_true", help="tiny images, 4 frames, 2 steps")
     args = ap.parse_args()
-    main(args.config, smoke=args.smoke)
+    from diffcloth.signals import handle_signals
+
+    with handle_signals():  # Ctrl-C / SIGTERM: the results folder is complete or untouched
+        main(args.config, smoke=args.smoke)

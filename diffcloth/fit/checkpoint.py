@@ -84,27 +84,45 @@ def load_checkpoint(path) -> dict[str, Any]:
         "history": {"params": {}, "grad_norm": {}}, "tracker": {}, "meta": {},
     }  # fmt: skip
     try:
-        z = np.load(path)
-    except (OSError, ValueError) as err:
-        raise ValueError(f"cannot read checkpoint {str(path)!r}: {err}") from None
-    with z:
-        for key in sorted(z.files):
-            if key == "step":
-                out["step"] = int(z[key])
-                continue
-            group, name = key.split("/", 1)
-            if group == "opt_state":
-                out["opt_state"].append(z[key])
-            elif group in ("state", "tracker", "history") and "/" in name:
-                sub, leaf = name.split("/", 1)
-                out[group].setdefault(sub, {})[leaf] = z[key]
-            elif group in ("state", "tracker", "history"):
-                out[group][name] = z[key]
-            else:
-                out[group][name] = z[key]
+        with np.load(path) as z:
+            for key in sorted(z.files):
+                if key == "step":
+                    out["step"] = int(z[key])
+                    continue
+                if "/" not in key:
+                    raise ValueError(f"unexpected entry {key!r}")
+                group, name = key.split("/", 1)
+                if group == "opt_state":
+                    out["opt_state"].append(z[key])
+                elif group in ("state", "tracker", "history") and "/" in name:
+                    sub, leaf = name.split("/", 1)
+                    out[group].setdefault(sub, {})[leaf] = z[key]
+                elif group in out and isinstance(out[group], dict):
+                    out[group][name] = z[key]
+                else:
+                    raise ValueError(f"unexpected entry {key!r}")
+    except FileNotFoundError:
+        raise ValueError(f"cannot read checkpoint {str(path)!r}: no such file") from None
+    except Exception as err:  # noqa: BLE001  (zipfile, zlib, pickle, EOF: all name the file)
+        raise ValueError(
+            f"cannot read checkpoint {str(path)!r}: it is truncated, damaged or not a diffcloth "
+            f"checkpoint ({type(err).__name__}: {err})"
+        ) from None
     side = path.with_suffix(".json")
     if side.exists():
-        out["meta"] = json.loads(side.read_text())
+        try:
+            meta = json.loads(side.read_text())
+        except (OSError, ValueError) as err:
+            raise ValueError(
+                f"cannot read the checkpoint's sidecar {str(side)!r}: it is truncated or damaged "
+                f"({type(err).__name__}: {err}); without it, --init-from can start a new fit "
+                "from the .npz"
+            ) from None
+        if not isinstance(meta, dict):
+            raise ValueError(
+                f"the checkpoint's sidecar {str(side)!r} is not a JSON object (damaged?)"
+            )
+        out["meta"] = meta
     return out
 
 

@@ -5,8 +5,12 @@
     if result.status == "interrupted": ...   # resume later with resume="ck.npz"
 
 The first signal sets the event (the fit loop checks it after every step, writes its checkpoint
-and returns with status "interrupted"); a second signal raises KeyboardInterrupt at once. A signal
-that arrives while XLA compiles is handled when the compilation returns to Python.
+and returns with status "interrupted"). A signal that arrives while XLA compiles or runs a compiled
+call is handled when the call returns to Python. Inside the command line's
+`diffcloth.signals.handle_signals` (every `diffcloth` command) this only marks the block as
+cooperative: a second signal there discards the temporary output and exits 130 / 143 at once.
+Elsewhere (a script of your own) handlers are installed for the block, and a second signal
+raises KeyboardInterrupt.
 """
 
 from __future__ import annotations
@@ -27,6 +31,13 @@ def catch_interrupts(
     """Install handlers for `signals` that set the yielded event (the previous handlers are put
     back on exit). Off the main thread (where Python cannot install handlers) the event is
     yielded without handlers. The event's `signum` attribute names the signal received."""
+    from diffcloth import signals as shared
+
+    state = shared.current()
+    if state is not None and state.installed:
+        with state.cooperate(message=message) as event:
+            yield event
+        return
     event = threading.Event()
     event.signum = None  # type: ignore[attr-defined]
     if threading.current_thread() is not threading.main_thread():
