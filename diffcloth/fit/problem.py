@@ -193,7 +193,7 @@ def fit_inputs(config_path, init_from=None) -> list[tuple[str, Path]]:
 
     found = config_inputs(config_path)
     if init_from is not None:
-        p = Path(init_from)
+        p = _checkpoint_file(init_from)
         found += [("--init-from checkpoint", p), ("--init-from sidecar", p.with_suffix(".json"))]
     return found
 
