@@ -51,6 +51,7 @@ def _fit(args) -> int:
             resume=args.resume,
             init_from=args.init_from,
             stop=stop,
+            allow_unstable=args.allow_unstable,
         )
     status = summary.get("status")
     if status == "interrupted":
@@ -113,6 +114,11 @@ def _view(args) -> int:
         return 2
     return run(args)
 
+
+UNSTABLE_HELP = (
+    "only warn (instead of refusing before any work) when dt/num_substeps exceeds the explicit "
+    "stability estimate"
+)
 
 BENCHMARKS = ("physics", "surface", "render", "shading", "rigid", "memory")
 
@@ -209,11 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--x64", action="store_true", help="simulate in float64")
     p.add_argument("--obj", action="store_true", help="also write DIR/obj/frame_*.obj surfaces")
     p.add_argument("--level", type=int, default=4, help="tessellation level for --obj")
-    p.add_argument(
-        "--allow-unstable",
-        action="store_true",
-        help="only warn when dt/num_substeps exceeds the explicit stability estimate",
-    )
+    p.add_argument("--allow-unstable", action="store_true", help=UNSTABLE_HELP)
     p.set_defaults(func=_simulate)
     r = sub.add_parser(
         "render",
@@ -230,6 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--chunk", type=int, default=10, help="frames rendered per compiled call")
     r.add_argument("--npy", action="store_true", help="also write the linear video as video.npy")
     r.add_argument("--x64", action="store_true", help="run in float64")
+    r.add_argument("--allow-unstable", action="store_true", help=UNSTABLE_HELP)
     r.set_defaults(func=_render)
     b = sub.add_parser("bench", help="run the stage benchmarks (JSON lines); needs the checkout")
     b.add_argument("stages", nargs="*", help=f"some of {', '.join(BENCHMARKS)} (default: all)")
@@ -263,6 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
         "its folder), e.g. after its config or targets changed, where --resume refuses",
     )
     f.add_argument("--x64", action="store_true", help="fit in float64")
+    f.add_argument("--allow-unstable", action="store_true", help=UNSTABLE_HELP)
     f.add_argument(
         "--devices",
         type=int,
@@ -352,9 +356,9 @@ def _discard() -> None:
 
 
 def _report_error(err: Exception) -> int:
-    from diffcloth.physics.rollout import UnstableSimulationError
+    from diffcloth.physics.rollout import UnstableSimulationError, UnstableStepError
 
-    if isinstance(err, UnstableSimulationError):
+    if isinstance(err, (UnstableSimulationError, UnstableStepError)):
         _err(str(err))
         return 1
     if isinstance(err, (ValueError, TypeError, OSError, MemoryError)):

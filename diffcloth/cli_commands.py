@@ -8,10 +8,12 @@ import sys
 import time
 
 
-def check_config(path, command: str = "render"):
+def check_config(path, command: str = "render", *, allow_unstable: bool = False):
     """The checks `diffcloth COMMAND CONFIG` runs before any work, without running it: the config
-    (ConfigError), the memory estimate (MemoryLimitError) and, for render and fit, the Scene and
-    the [truth]/[fit.initial] values against it. Returns the Scene (or the Config for simulate).
+    (ConfigError, every value also in the run's dtype), the memory estimate (MemoryLimitError),
+    the stability gate (physics.UnstableStepError unless `allow_unstable`) and, for render and
+    fit, the Scene and the [truth]/[fit.initial] values against it. Returns the Scene (or the
+    Config for simulate).
     """
     from diffcloth import memory
     from diffcloth.config import ConfigError, load_config
@@ -29,24 +31,33 @@ def check_config(path, command: str = "render"):
         ),  # fmt: skip
         f"{command} {path}",
     )
+    stability = "warn" if allow_unstable else "error"
     if command == "simulate":
         from diffcloth.config import build_physics
-        from diffcloth.scene import build_bodies
+        from diffcloth.scene import build_bodies, check_run_stability
 
-        build_physics(config)
+        phys = build_physics(config)
         build_bodies(config)
+        check_run_stability(phys.net, phys.sim, phys.material, stability=stability)
         return config
-    scene = build_scene(config)
+    scene = build_scene(config, stability=stability)
     if command == "fit":
-        from diffcloth.experiment import _check_values
+        from diffcloth.experiment import _check_stable_values, _check_values
 
         _check_values(scene, config.fit.truth, "truth")
         _check_values(scene, config.fit.initial, "fit.initial")
+        _check_stable_values(scene, config.fit, stability)
     return scene
 
 
 def _err(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr, flush=True)
+
+
+def _stability(args) -> str:
+    """The stability gate's mode of a command (`scene.check_run_stability`): the same in
+    simulate, render and fit: refuse, or only warn with --allow-unstable."""
+    return "warn" if getattr(args, "allow_unstable", False) else "error"
 
 
 def _check_positive(name: str, value, lo: int = 1) -> None:
@@ -68,7 +79,7 @@ def _simulate(args) -> int:
     from diffcloth.outdir import OutputDir, config_inputs
     from diffcloth.physics.rollout import ADVICE
     from diffcloth.pipeline import split_colliders
-    from diffcloth.scene import build_bodies
+    from diffcloth.scene import build_bodies, check_run_stability
 
     _check_positive("--frames", args.frames)
     _check_positive("--chunk", args.chunk)
@@ -86,18 +97,13 @@ def _simulate(args) -> int:
     scene = build_physics(config)
     bodies, two_way = build_bodies(config)
     net, sim, material = scene.net, scene.sim, scene.material
+    check_run_stability(net, sim, material, stability=_stability(args))  # before any work
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=config_inputs(args.config))
     print(
         f"diffcloth simulate {args.config}: net {net.rows}x{net.cols}, {num_frames} frames, "
         f"{sim.num_substeps} substeps/frame, {sim.integrator}, {len(bodies)} rigid bodies",
         flush=True,
     )
-    try:
-        physics.check_stability(net, sim, material, error=not args.allow_unstable)
-    except ValueError as err:
-        out.discard()
-        _err(str(err))
-        return 1
     chunk = max(1, min(args.chunk, num_frames))
     jitted = {}
 
@@ -235,7 +241,7 @@ def _render(args) -> int:
     overrides = {}
     if args.size is not None:
         overrides.update(width=args.size, height=args.size)
-    scene = build_scene(config, overrides=overrides or None)
+    scene = build_scene(config, overrides=overrides or None, stability=_stability(args))
     T, k = scene.num_frames, scene.frame_stride
     h, w = scene.image_shape
     out = OutputDir(args.out, overwrite=args.overwrite, inputs=config_inputs(args.config))

@@ -150,6 +150,24 @@ def _check_values(sc, values: Mapping, where: str) -> None:
         raise cfg.ConfigError(f"[{where}] {err}") from None
 
 
+def _check_stable_values(sc, settings, stability: str) -> None:
+    """The stability gate (`scene.check_run_stability`) at the [truth] and [fit.initial] values,
+    which may be stiffer or lighter than the scene's own."""
+    from diffcloth import pipeline, scene
+
+    for where, values in (("truth", settings.truth), ("fit.initial", settings.initial)):
+        if not any(pipeline.PARAMETERS[n][0] in ("material", "sim") for n in values):
+            continue
+        s = pipeline.apply_params(sc, dict(values))
+        scene.check_run_stability(
+            s.net,
+            s.sim,
+            s.material,
+            stability=stability,
+            label=f"[{where}] {_fmt_params(values)}: ",
+        )
+
+
 def _fmt_params(params: Mapping) -> str:
     return ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in params.items())
 
@@ -201,6 +219,7 @@ def run_fit_config(
     init_from=None,
     stop=None,
     checkpoint_every: int = 10,
+    allow_unstable: bool = False,
 ) -> dict:
     """Load a fit config, make or load the targets, fit, and write the results folder.
 
@@ -222,6 +241,9 @@ def run_fit_config(
         `diffcloth.fit.interrupt.catch_interrupts`): the checkpoint and a partial report marked
         "interrupted" are written, and the summary's status is "interrupted".
       checkpoint_every: also write the checkpoint every this many steps.
+      allow_unstable: only warn when an explicit substep exceeds the stability estimate, for the
+        config's own values, [truth] or [fit.initial] (`scene.check_run_stability`); by default
+        that is refused (physics.UnstableStepError) before any work, as in simulate and render.
     Returns:
       The summary dict written to result.json (plus "out_dir", "total_s").
     Raises:
@@ -265,7 +287,8 @@ def run_fit_config(
         f"multistart {settings.multistart})",
         hint="lower [render] width/height, [sim] num_frames, the net size or multistart",
     )
-    sc = scene.build_scene(config)
+    stability = "warn" if allow_unstable else "error"
+    sc = scene.build_scene(config, stability=stability)
     if init_from is not None:  # a new fit from an earlier fit's parameters (--init-from)
         if resume:
             raise UsageError("--init-from starts a new fit and --resume continues one: give one")
@@ -277,6 +300,7 @@ def run_fit_config(
         extra_sections = {**(extra_sections or {}), "Initial values": note}
     _check_values(sc, settings.truth, "truth")
     _check_values(sc, settings.initial, "fit.initial")
+    _check_stable_values(sc, settings, stability)
     targets = None
     if settings.targets is not None:
         targets = load_targets(settings, sc)

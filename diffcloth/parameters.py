@@ -15,6 +15,7 @@ from diffcloth import render
 from diffcloth.physics.massspring import MASS_SPRING_FIELDS
 from diffcloth.physics.material import MATERIAL_FIELDS
 from diffcloth.render.lights import appearance_fields
+from diffcloth.representable import check_physics, check_representable
 
 #: body parameter name -> RigidBody field; values are per body, (num_bodies,) or (num_bodies, 3).
 BODY_PARAMETERS = {
@@ -146,6 +147,8 @@ def check_param_values(scene, params: Mapping) -> None:
                 f"parameter {name} = {a.tolist()} is out of range; allowed {rng.text()} "
                 "(finite values only)"
             )
+        # the value as the run holds it: the scene's dtype (float32 unless x64)
+        check_representable(f"parameter {name}", a, old.dtype)
 
 
 def check_param_names(names) -> None:
@@ -230,6 +233,17 @@ def apply_params(scene, params: Mapping[str, jax.Array] | None):
         groups.setdefault(group, {})[field] = jnp.broadcast_to(
             jnp.asarray(value, old.dtype), old.shape
         )
+    if not any(isinstance(v, jax.core.Tracer) for v in params.values()) and (
+        "material" in groups or "sim" in groups
+    ):  # concrete values: the masses and substep they make, in the scene's dtype
+        names = sorted(n for n in params if PARAMETERS[n][0] in ("material", "sim"))
+        check_physics(
+            scene.net,
+            dataclasses.replace(scene.sim, **groups.get("sim", {})),
+            dataclasses.replace(scene.material, **groups.get("material", {})),
+            names={k: f"parameter(s) {', '.join(names)} with the scene" for k in
+                   ("net", "mass", "substep")},
+        )  # fmt: skip
     body_fields = groups.pop("bodies", None)
     capture_fields = groups.pop("capture", None)
     changes = {g: dataclasses.replace(getattr(scene, g), **f) for g, f in groups.items()}

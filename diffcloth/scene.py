@@ -22,7 +22,14 @@ from diffcloth import config as cfg
 from diffcloth import render
 from diffcloth.shapes import Sphere
 
-__all__ = ["Scene", "build_bodies", "build_scene", "load_scene", "RenderConfig"]
+__all__ = [
+    "Scene",
+    "build_bodies",
+    "build_scene",
+    "check_run_stability",
+    "load_scene",
+    "RenderConfig",
+]
 
 
 @jax.tree_util.register_dataclass
@@ -179,16 +186,43 @@ def _warn_small_bodies(bodies, config: cfg.Config) -> None:
             )
 
 
-def build_scene(
-    config: cfg.Config, dtype=None, *, overrides: Mapping[str, Any] | None = None
-) -> Scene:
-    """A Scene from a validated Config (physics from `config.build_physics`, the rest from the
-    render sections). `overrides` replaces top-level render settings (e.g. {"level": 3})."""
+STABILITY = ("warn", "error")
+
+
+def check_run_stability(net, sim, material, *, stability: str = "error", label: str = "") -> None:
+    """The one stability gate of `diffcloth simulate`, `render` and `fit`, run before any work.
+
+    An explicit (symplectic) substep above the stability estimate (`physics.check_stability`)
+    raises `physics.UnstableStepError` (a ValueError; the CLI exits 1 with the advice) when
+    `stability` is "error", or warns (StabilityWarning) when it is "warn" (`--allow-unstable`).
+    `label` prefixes the message (e.g. "[truth] stretch = 900: "). The implicit integrator is
+    not checked.
+    """
     from diffcloth import physics
 
+    if stability not in STABILITY:
+        raise ValueError(f"stability={stability!r}; allowed: {', '.join(STABILITY)}")
+    if sim.integrator != "symplectic":
+        return
+    try:
+        physics.check_stability(net, sim, material, error=stability == "error")
+    except physics.UnstableStepError as err:
+        raise physics.UnstableStepError(f"{label}{err}") from None
+
+
+def build_scene(
+    config: cfg.Config,
+    dtype=None,
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    stability: str = "warn",
+) -> Scene:
+    """A Scene from a validated Config (physics from `config.build_physics`, the rest from the
+    render sections). `overrides` replaces top-level render settings (e.g. {"level": 3}).
+    `stability`: "warn" (default) or "error" (`check_run_stability`, what the CLI uses) when the
+    explicit substep exceeds the stability estimate."""
     phys = cfg.build_physics(config, dtype=dtype)
-    if phys.sim.integrator == "symplectic":
-        physics.check_stability(phys.net, phys.sim, phys.material)  # warns, naming the remedy
+    check_run_stability(phys.net, phys.sim, phys.material, stability=stability)
     rc = config.render
     if overrides:
         rc = dataclasses.replace(rc, **overrides)

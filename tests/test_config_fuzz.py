@@ -1,6 +1,7 @@
 """Fuzz the configs (issue 15): random mutations of every shipped config, written back as TOML,
 fed to `load_scene` and to the CLI's pre-work checks (`diffcloth.cli.check_config`). The only
-allowed outcomes are a valid Scene or a ConfigError (MemoryLimitError for sizes over the limit):
+allowed outcomes are a valid Scene or a ConfigError (MemoryLimitError for sizes over the limit,
+UnstableStepError from the CLI's stability gate):
 never a traceback from deeper code, never a silent NaN in the built scene."""
 
 import json
@@ -20,6 +21,7 @@ import diffcloth as dc
 from diffcloth.cli import check_config
 from diffcloth.config import ConfigError
 from diffcloth.memory import MemoryLimitError
+from diffcloth.physics import UnstableStepError
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.toml") if not p.name.startswith("."))
@@ -125,7 +127,7 @@ def _outcome(fn):
         warnings.simplefilter("ignore")  # stability/small-body warnings are fine outcomes
         try:
             return fn()
-        except (ConfigError, MemoryLimitError) as err:
+        except (ConfigError, MemoryLimitError, UnstableStepError) as err:  # refused before work
             assert str(err), "an error must say what is wrong"
             return err
 

@@ -268,21 +268,32 @@ class PhysicsScene:
 
 
 def build_physics(config, dtype=None) -> PhysicsScene:
-    """Net, SimSettings, Material, initial ClothState and Colliders of a Config."""
+    """Net, SimSettings, Material, initial ClothState and Colliders of a Config.
+
+    Every value of the config, and the node masses, rest lengths, spring weights and substep
+    derived from them, are first checked in the run's dtype (`dtype`, default JAX's float:
+    float32 unless x64 is on): ConfigError names the key when one overflows or underflows there
+    (`diffcloth.config.dtype`)."""
     from diffcloth import physics
+    from diffcloth.config.dtype import check_config_dtype, check_physics_dtype
     from diffcloth.shapes import make_plane, make_sphere
 
+    check_config_dtype(config, dtype)  # every value in the run's dtype, naming the key
     n, s = config.net, config.sim
     pinned = n.pinned if isinstance(n.pinned, str) else [list(p) for p in n.pinned]
-    net = physics.grid_net(
-        n.rows,
-        n.cols,
-        (n.width, n.height),
-        center=n.center,
-        plane=n.plane,
-        pinned=pinned or None,
-        dtype=dtype,
-    )
+    try:
+        net = physics.grid_net(
+            n.rows,
+            n.cols,
+            (n.width, n.height),
+            center=n.center,
+            plane=n.plane,
+            pinned=pinned or None,
+            dtype=dtype,
+        )
+    except ValueError as err:  # the net's derived sizes in the run's dtype
+        where = f"{config.path}: " if config.path else ""
+        raise ConfigError(f"{where}[net] width, height, rows, cols, center: {err}") from None
     sim = physics.make_sim(
         s.dt,
         gravity=s.gravity,
@@ -309,6 +320,7 @@ def build_physics(config, dtype=None) -> PhysicsScene:
         material = physics.make_mass_spring(dtype=dtype, lumping=m.lumping, **m.fields())
     else:
         material = physics.make_material(dtype=dtype, **m.fields())
+    check_physics_dtype(config, net, sim, material)  # masses, lengths, weights, substep
     spheres = [make_sphere(sp.center, sp.radius, dtype=dtype) for sp in config.spheres]
     planes = [make_plane(pl.normal, pl.offset, dtype=dtype) for pl in config.planes]
     colliders = physics.make_colliders(spheres, planes, dtype=dtype) if spheres or planes else None

@@ -58,6 +58,7 @@ from diffcloth.physics.rigid import make_settings as make_rigid_settings
 from diffcloth.physics.rollout import (
     StabilityWarning,
     UnstableSimulationError,
+    UnstableStepError,
     advance,
     blowup_bound,
     check_stability,
@@ -101,6 +102,7 @@ __all__ = [
     "SimSettings",
     "StabilityWarning",
     "UnstableSimulationError",
+    "UnstableStepError",
     "advance",
     "as_colliders",
     "bend_forces",

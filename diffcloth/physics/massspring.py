@@ -26,6 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffcloth.representable import check_representable
+
 LUMPINGS = ("uniform", "area")
 
 # name -> (lower bound, lower bound inclusive?, unit, default)
@@ -128,10 +130,11 @@ def make_mass_spring(dtype=None, *, lumping: str = "uniform", **fields) -> MassS
             f"allowed: {sorted(MASS_SPRING_FIELDS)}"
         )
     dtype = dtype or jnp.zeros(()).dtype
-    values = {
-        name: jnp.asarray(check_mass_spring_value(name, fields.get(name, default)), dtype)
-        for name, (_, _, _, default) in MASS_SPRING_FIELDS.items()
-    }
+    values = {}
+    for name, (_, _, _, default) in MASS_SPRING_FIELDS.items():
+        value = check_mass_spring_value(name, fields.get(name, default))
+        check_representable(f"material.{name}", value, dtype)  # in the run's dtype
+        values[name] = jnp.asarray(value, dtype)
     return MassSpring(**values, lumping=lumping)
 
 

@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffcloth.representable import check_representable
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -97,7 +99,9 @@ def make_material(dtype=None, **fields) -> Material:
     dtype = dtype or jnp.zeros(()).dtype
     values = {}
     for name, (_, _, _, default) in MATERIAL_FIELDS.items():
-        values[name] = jnp.asarray(check_material_value(name, fields.get(name, default)), dtype)
+        value = check_material_value(name, fields.get(name, default))
+        check_representable(f"material.{name}", value, dtype)  # in the run's dtype
+        values[name] = jnp.asarray(value, dtype)
     return Material(**values)
 
 

@@ -21,6 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffcloth.representable import check_quantities, net_quantities
+
 PIN_PRESETS = ("none", "all", "top_row", "top_corners", "bottom_row", "left_column")
 
 
@@ -183,6 +185,11 @@ def make_net(rest, *, pinned=None, dtype=None) -> Net:
     weight_bv = width_bv / vb**3
 
     dtype = dtype or jnp.zeros(()).dtype
+    arrays = dict(rest=rest, area=area, rest_h=rest_h, rest_v=rest_v, rest_d1=rest_d1,
+                  rest_d2=rest_d2, weight_h=weight_h, weight_v=weight_v, weight_d=weight_d,
+                  weight_bh=weight_bh, weight_bv=weight_bv)  # fmt: skip
+    # in the run's dtype, before the cast: a net of 1e20 m overflows its areas in float32
+    check_quantities("the net's rest positions (size, center)", net_quantities(arrays), dtype)
     a = lambda t: jnp.asarray(t, dtype)
     return Net(
         rest=a(rest),

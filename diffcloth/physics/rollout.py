@@ -26,6 +26,11 @@ class StabilityWarning(UserWarning):
     """The time step is above the explicit integrator's stability estimate."""
 
 
+class UnstableStepError(ValueError):
+    """The explicit substep is above the stability estimate: refused before any work
+    (`check_stability(..., error=True)`; the CLI exits 1 with the advice)."""
+
+
 class UnstableSimulationError(RuntimeError):
     """The trajectory became non-finite or blew up."""
 
@@ -224,7 +229,8 @@ def stable_substep(net: Net, sim: SimSettings, material, *, method: str = "modes
 
 
 def check_stability(net: Net, sim: SimSettings, material, *, error: bool = False) -> float:
-    """Warn (or raise ValueError when `error`) if the explicit substep exceeds the stability limit.
+    """Warn (or raise UnstableStepError, a ValueError, when `error`) if the explicit substep exceeds
+    the stability limit.
 
     Two stages: the cheap per-node Gershgorin bound (`method="gershgorin"`) clears most runs; only
     a substep above it is checked against the tight modal estimate (`method="modes"`, which costs
@@ -238,14 +244,17 @@ def check_stability(net: Net, sim: SimSettings, material, *, error: bool = False
     if h > h_max:
         h_max = stable_substep(net, sim, material, method="modes")
     if h > h_max:
-        need = math.ceil(float(np.asarray(sim.dt)) / h_max)
+        ratio = float(np.asarray(sim.dt)) / h_max if h_max > 0 else math.inf
+        need = f"num_substeps >= {math.ceil(ratio)}" if math.isfinite(ratio) else (
+            "raise the masses or lower the stiffnesses: no substep count is enough"
+        )  # fmt: skip
         msg = (
             f"unstable time step: substep dt/num_substeps = {h:.3g} s exceeds the explicit "
             f"stability estimate {h_max:.3g} s (stiffest mode of the linearised forces); {ADVICE} "
-            f"(e.g. num_substeps >= {need})"
+            f"(e.g. {need})"
         )
         if error:
-            raise ValueError(msg)
+            raise UnstableStepError(msg)
         warnings.warn(msg, StabilityWarning, stacklevel=2)
     return h_max
 

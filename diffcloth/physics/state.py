@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffcloth.representable import check_representable
+
 INTEGRATORS = ("symplectic", "implicit")
 #: contact velocity rules: "auto" is "displacement" for the implicit integrator, else "coulomb"
 FRICTION_RULES = ("auto", "coulomb", "displacement", "impact")
@@ -130,10 +132,14 @@ def make_sim(
     if not (0 < cg_tol < 1):
         raise ValueError(f"cg_tol: must be in (0, 1), got {cg_tol!r}")
     dtype = dtype or jnp.zeros(()).dtype
+    gravity, wind = _check_vec3("gravity", gravity), _check_vec3("wind", wind)
+    for what, value in (("dt", dt_f), ("gravity", gravity), ("wind", wind),
+                        ("collision_margin", margin)):  # fmt: skip
+        check_representable(what, value, dtype)  # in the run's dtype
     return SimSettings(
         dt=jnp.asarray(dt_f, dtype),
-        gravity=jnp.asarray(_check_vec3("gravity", gravity), dtype),
-        wind=jnp.asarray(_check_vec3("wind", wind), dtype),
+        gravity=jnp.asarray(gravity, dtype),
+        wind=jnp.asarray(wind, dtype),
         collision_margin=jnp.asarray(margin, dtype),
         num_substeps=int(num_substeps),
         integrator=integrator,
