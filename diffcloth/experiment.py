@@ -39,7 +39,8 @@ def load_targets(settings, sc) -> np.ndarray:
     Layout ([fit] keys): one folder per camera: `target_cameras` (names or globs inside
     `targets`; default cam0, cam1, ..., or `targets` itself for one camera without cam0/). In each,
     the images matching `target_glob` (default "*.png"; may name a subfolder, "rgb/*.png"),
-    sorted naturally (frame_2 before frame_10); of those, `target_frames = [first, stop]` (default
+    sorted naturally (frame_2 before frame_10), whose numbering must run without gaps
+    (`io.media.check_numbered_sequence`); of those, `target_frames = [first, stop]` (default
     all) every `target_stride`-th. The images left must be exactly the video's frames: image i
     shows the scene's rendered frame i, i.e. simulated frame (i + 1) * frame_stride with
     [render] first_frame = 1 (default: the initial state is not drawn) or i * frame_stride with
@@ -47,7 +48,7 @@ def load_targets(settings, sc) -> np.ndarray:
     files and linear for 16-bit ones), "srgb" or "linear"; targets are converted to linear RGB.
     """
     from diffcloth.io import load_image
-    from diffcloth.io.media import natural_key
+    from diffcloth.io.media import check_numbered_sequence, natural_key
 
     root = Path(settings.targets)
     if not root.is_dir():
@@ -82,6 +83,12 @@ def load_targets(settings, sc) -> np.ndarray:
                 f"[fit] targets: no files matching {settings.target_glob!r} in {str(folder)!r} "
                 f"(camera {cam}); the folder is empty or the pattern ([fit] target_glob) is wrong"
             )
+        try:  # a gap in frame_0, frame_1, frame_3 would misalign every later image
+            check_numbered_sequence(
+                files, f"[fit] targets: {str(folder)!r} ({settings.target_glob!r}, camera {cam})"
+            )
+        except ValueError as err:
+            raise cfg.ConfigError(str(err)) from None
         first, stop = settings.target_frames or (0, len(files))
         if stop > len(files):
             raise cfg.ConfigError(
@@ -118,6 +125,11 @@ def load_targets(settings, sc) -> np.ndarray:
                 )
             if not np.all(np.isfinite(img)):
                 raise cfg.ConfigError(f"[fit] targets: {str(p)!r} holds NaN/inf pixels")
+            if img.min() < 0 or img.max() > 1:  # float files (TIFF, EXR): not an image's range
+                raise cfg.ConfigError(
+                    f"[fit] targets: {str(p)!r} holds values in [{img.min():g}, {img.max():g}]; "
+                    "target images must be in [0, 1] (clip or convert them first)"
+                )
             frames.append(img)
         videos.append(np.stack(frames))
     return np.stack(videos)

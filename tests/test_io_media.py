@@ -141,6 +141,6 @@ def test_image_sequence_round_trip_and_errors(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="no files"):
         load_image_sequence(tmp_path / "empty")
-    save_png(tmp_path / "frames" / "f_99.png", np.zeros((3, 3, 3)))
+    save_png(tmp_path / "frames" / "f_11.png", np.zeros((3, 3, 3)))  # next number: no gap
     with pytest.raises(ValueError, match="differ in size"):
         load_image_sequence(tmp_path / "frames")

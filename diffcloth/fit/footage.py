@@ -108,11 +108,11 @@ def prepare_targets(
 ) -> FootageTargets:
     """Check the target video (cams, T, H, W, 3) against the scene and precompute what the mask
     loss needs (distance transforms, numpy, once)."""
-    from diffcloth.fit.losses import validate_targets
+    from diffcloth.fit.losses import as_target_array, validate_targets
     from diffcloth.fit.masks import target_distances
 
     dtype = dtype or scene.material.density.dtype
-    video = np.asarray(targets)
+    video = as_target_array(targets, "targets")
     if video.ndim == 4 and len(scene.cameras) == 1:
         video = video[None]
     video = validate_targets(video, scene.video_shape, name="targets")

@@ -213,6 +213,56 @@ def pyramid_loss(
     return total
 
 
+def _shape_of(x) -> tuple:
+    """The shape of a (possibly ragged) nested list, as far as it is regular."""
+    if isinstance(x, (list, tuple)):
+        return (len(x),)
+    return tuple(np.shape(x))
+
+
+def as_target_array(targets, name: str = "targets") -> np.ndarray:
+    """`np.asarray(targets)`, with a ValueError naming `name` and the odd entries when `targets`
+    is a ragged list (frames or cameras of different shapes), instead of NumPy's own message."""
+    if isinstance(targets, (list, tuple)):
+
+        def ragged(x, where):
+            if not isinstance(x, (list, tuple)) or not x:
+                return None
+            shapes = [np.shape(e) if not isinstance(e, (list, tuple)) else None for e in x]
+            if all(s is None for s in shapes):  # nested lists: look one level down
+                inner = [_shape_of(e) for e in x]
+                if len(set(inner)) > 1:
+                    return where, inner
+                for i, e in enumerate(x):
+                    got = ragged(e, f"{where}[{i}]")
+                    if got:
+                        return got
+                return None
+            try:
+                shapes = [np.shape(e) for e in x]
+            except ValueError:
+                shapes = [_shape_of(e) for e in x]
+            return (where, shapes) if len(set(shapes)) > 1 else None
+
+        got = ragged(list(targets), name)
+        if got:
+            where, shapes = got
+            common = max(set(shapes), key=shapes.count)
+            odd = [f"{where}[{i}] has shape {s}" for i, s in enumerate(shapes) if s != common]
+            raise ValueError(
+                f"{name} is a ragged list: the entries of {where} differ in shape (most are "
+                f"{common}; " + ", ".join(odd[:6]) + (" ..." if len(odd) > 6 else "") + "); "
+                "give frames of one size, e.g. a (T, H, W, C) array per camera"
+            )
+    try:
+        arr = np.asarray(targets)
+    except ValueError as err:  # ragged in a way the walk above did not name
+        raise ValueError(f"{name} cannot be made an array (ragged frames?): {err}") from None
+    if arr.dtype == object:
+        raise ValueError(f"{name} is a ragged list or holds non-numbers (dtype object)")
+    return arr
+
+
 def validate_targets(
     targets,
     expected_shape: Sequence[int | None],
@@ -220,6 +270,7 @@ def validate_targets(
     name: str = "targets",
     dtype=None,
     check_range: bool = True,
+    value_range: tuple[float | None, float | None] = (0.0, 1.0),
 ) -> np.ndarray:
     """Check target images against the rendered shape and convert them to float.
 
@@ -227,18 +278,22 @@ def validate_targets(
     (cast to `dtype` if given, else float32 unless already float64). Other integer types raise.
 
     Args:
-      targets: array-like of images or video frames.
+      targets: array-like of images or video frames (a ragged list is a ValueError naming `name`).
       expected_shape: the shape the renderer produces, e.g. (T, H, W, C); None matches any size.
       name: the argument name used in messages.
       dtype: optional float dtype of the result.
-      check_range: reject float data whose maximum exceeds 2 (it looks like 0..255 data).
+      check_range: check float data against `value_range` (False: any finite value).
+      value_range: (low, high) allowed for float data (None: unbounded); default [0, 1], what an
+        image holds. `diffcloth.fit.fit` passes (0, None): a rendered (linear) video may exceed
+        1 at highlights, so synthetic targets can too, but nothing is negative.
     Returns:
       A float numpy array of the expected shape.
     Raises:
-      ValueError: wrong number of axes, frames, size or channels; NaN or inf pixels; float data
-        that looks like 0..255.
+      ValueError: a ragged list; wrong number of axes, frames, size or channels; NaN or inf
+        pixels; float data outside `value_range` (data above 2 is named as looking like 0..255).
     """
-    arr = np.asarray(targets)
+    arr = as_target_array(targets, name)
+    given_float = np.issubdtype(arr.dtype, np.floating)  # integer images are in range by design
     expected = tuple(expected_shape)
     if arr.dtype == np.uint8:
         arr = arr.astype(np.float32) / 255.0
@@ -288,11 +343,23 @@ def validate_targets(
             f"{name} (shape {given}) contains {int((~finite).sum())} NaN or inf values "
             f"(first at index {first}); the expected shape is {want} with finite values in [0, 1]"
         )
-    if check_range and arr.size and np.issubdtype(np.asarray(targets).dtype, np.floating):
-        hi = float(arr.max())
-        if hi > 2.0:
+    lo_ok, hi_ok = value_range if check_range else (None, None)
+    if arr.size and given_float:
+        lo, hi = float(arr.min()), float(arr.max())
+        if hi_ok is not None and hi > 2.0 and hi > hi_ok:
             raise ValueError(
                 f"{name} has float values up to {hi:g}; images must be in [0, 1] "
                 "(divide 0..255 data by 255, or pass uint8 arrays)"
+            )
+        if (lo_ok is not None and lo < lo_ok) or (hi_ok is not None and hi > hi_ok):
+            bad = (arr < lo_ok) if lo_ok is not None else np.zeros(arr.shape, bool)
+            if hi_ok is not None:
+                bad |= arr > hi_ok
+            first = tuple(int(i) for i in np.argwhere(bad)[0])
+            allowed = f"[{lo_ok:g}, {'inf' if hi_ok is None else format(hi_ok, 'g')}]"
+            raise ValueError(
+                f"{name} has float values in [{lo:g}, {hi:g}], {int(bad.sum())} of them outside "
+                f"the allowed {allowed} (first at index {first}); clip them (np.clip(x, 0, 1)) "
+                "or convert them to linear RGB in [0, 1] first"
             )
     return arr

@@ -16,7 +16,7 @@ import numpy as np
 
 from diffcloth.fit.constraints import Bounded, Identity, Positive
 from diffcloth.fit.loop import fit_multistart, fit_params
-from diffcloth.fit.losses import image_loss, pyramid_loss, validate_targets
+from diffcloth.fit.losses import as_target_array, image_loss, pyramid_loss, validate_targets
 
 __all__ = [
     "LOSSES",
@@ -251,10 +251,11 @@ def fit(
         check_bump_detail(scene, free)
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
-    targets = np.asarray(targets)
+    targets = as_target_array(targets, "targets")
     if targets.ndim == 4 and len(scene.cameras) == 1:
         targets = targets[None]
-    targets = validate_targets(targets, scene.video_shape, name="targets")
+    # rendered (linear) videos exceed 1 at highlights: synthetic targets may too, never < 0
+    targets = validate_targets(targets, scene.video_shape, name="targets", value_range=(0.0, None))
     targets = jnp.asarray(targets, scene.material.density.dtype)
     init = {
         n: np.asarray(init[n] if init and n in init else pipeline.param_value(scene, n))

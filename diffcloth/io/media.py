@@ -40,6 +40,7 @@ __all__ = [
     "linear_to_srgb",
     "load_image",
     "load_image_sequence",
+    "check_numbered_sequence",
     "load_json",
     "load_video",
     "save_image_sequence",
@@ -173,21 +174,22 @@ def save_png(path, image, *, colorspace: str = "linear", bits: int = 8) -> Path:
 
 def read_image_raw(path) -> tuple[np.ndarray, str | None]:
     """(stored values as uint8/uint16/float array (H, W, C), the file's own colour encoding:
-    "srgb", "linear" or None when the file does not say). PNGs are read exactly
-    (`diffcloth.io.png`), other formats with imageio."""
-    path = Path(path)
-    if path.suffix.lower() == ".png":
-        from diffcloth.io.png import read_png
+    "srgb", "linear" or None when the file does not say). Every PNG (recognised by its signature,
+    whatever the suffix; interlaced, palette and 16-bit files included) is read exactly by
+    `diffcloth.io.png`, never through Pillow's 8-bit reduction; other formats with imageio."""
+    from diffcloth.io.png import _SIGNATURE, read_png
 
-        got = read_png(path)
-        if got is not None:
-            img, info = got
-            tag = None
-            if info["srgb"]:
-                tag = "srgb"
-            elif info["gamma"] is not None:
-                tag = "linear" if abs(info["gamma"] - 1.0) < 0.01 else "srgb"
-            return img, tag
+    path = Path(path)
+    with path.open("rb") as fh:
+        is_png = fh.read(len(_SIGNATURE)) == _SIGNATURE
+    if is_png or path.suffix.lower() == ".png":  # a .png that is not one: read_png says so
+        img, info = read_png(path)
+        tag = None
+        if info["srgb"]:
+            tag = "srgb"
+        elif info["gamma"] is not None:
+            tag = "linear" if abs(info["gamma"] - 1.0) < 0.01 else "srgb"
+        return img, tag
     import imageio.v3 as iio
 
     a = np.asarray(iio.imread(path))
@@ -371,11 +373,64 @@ def natural_key(p: Path):
     return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", p.name)]
 
 
+_LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+
+
+def check_numbered_sequence(files, where: str = "") -> None:
+    """Refuse a frame sequence whose numbering does not run evenly (ValueError naming the missing
+    frames): frame_0, frame_1, frame_3 lacks frame_2, and every later image would be matched with
+    the wrong rendered frame. The number is the last digit run of each file name; numbering may
+    start anywhere and step by any constant (frame_0, frame_2, frame_4 is a sequence). Files of
+    two different numbered patterns (frame_#.png next to mask_#.png), or two files with the same
+    number (frame_1.png, frame_01.png), are refused too. Names without digits are not checked.
+
+    Args:
+      files: paths, in the order they will be used (natural order).
+      where: text naming the folder (and pattern) in messages.
+    """
+    files = [Path(f) for f in files]
+    numbered = [(f, _LAST_NUMBER.search(f.name)) for f in files]
+    if not any(m for _, m in numbered):
+        return
+    patterns: dict[str, list] = {}
+    for f, m in numbered:
+        key = f.name if m is None else f.name[: m.start()] + "#" + f.name[m.end() :]
+        patterns.setdefault(key, []).append((f, int(m.group(1)) if m else None))
+    if len(patterns) > 1:
+        shown = ", ".join(f"{k!r} ({len(v)})" for k, v in list(patterns.items())[:6])
+        raise ValueError(
+            f"{where}: the matching files follow {len(patterns)} naming patterns ({shown}); "
+            "a frame sequence has one (narrow the file pattern, e.g. [fit] target_glob)"
+        )
+    ((key, entries),) = patterns.items()
+    nums = sorted(n for _, n in entries)
+    dupes = sorted({n for n in nums if nums.count(n) > 1})
+    if dupes:
+        names = [f.name for f, n in entries if n == dupes[0]]
+        raise ValueError(f"{where}: frame number {dupes[0]} appears twice ({', '.join(names)})")
+    if len(nums) < 3:
+        step = nums[-1] - nums[0] if len(nums) == 2 else 1
+    else:
+        step = math.gcd(*(b - a for a, b in zip(nums[:-1], nums[1:], strict=True)))
+    expected = range(nums[0], nums[-1] + 1, max(step, 1))
+    missing = sorted(set(expected) - set(nums))
+    if missing:
+        width = len(_LAST_NUMBER.search(entries[0][0].name).group(1))
+        example = [key.replace("#", str(n).zfill(width)) for n in missing[:6]]
+        raise ValueError(
+            f"{where}: the numbered frames {nums[0]} .. {nums[-1]} (step {step}) lack "
+            f"{len(missing)} frame(s): {', '.join(example)}{' ...' if len(missing) > 6 else ''}; "
+            "image i must show rendered frame i, so a gap would misalign every later frame "
+            "(export the missing frames, or renumber the sequence)"
+        )
+
+
 def load_image_sequence(folder, pattern: str = "*.png", *, colorspace: str = "auto") -> np.ndarray:
     """Read a folder of frames (natural order: frame_2 before frame_10) into float32 (T, H, W, C).
 
-    colorspace: as for `load_image`. Raises ValueError when the folder is missing or empty, or
-    the frames differ in size or channels (naming the odd files).
+    colorspace: as for `load_image`. Raises ValueError when the folder is missing or empty, the
+    numbering has a gap (`check_numbered_sequence`), or the frames differ in size or channels
+    (naming the odd files).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -383,6 +438,7 @@ def load_image_sequence(folder, pattern: str = "*.png", *, colorspace: str = "au
     files = sorted((p for p in folder.glob(pattern) if p.is_file()), key=natural_key)
     if not files:
         raise ValueError(f"no files matching {pattern!r} in {str(folder)!r}")
+    check_numbered_sequence(files, f"{str(folder)!r} ({pattern!r})")
     frames = [load_image(p, colorspace=colorspace) for p in files]
     shapes = [f.shape for f in frames]
     common = max(set(shapes), key=shapes.count)
