@@ -82,13 +82,17 @@ def _fit(args) -> int:
 
 def _warmup(args) -> int:
     from diffcloth.outdir import UsageError
-    from diffcloth.runtime import cache_disabled
+    from diffcloth.runtime import cache_disabled, check_cache_dir
 
     if args.no_cache or (args.cache is None and cache_disabled()):
         raise UsageError(
             "warmup fills the compilation cache: drop --no-cache (and DIFFCLOTH_CACHE=off), "
             "or name a folder with --cache DIR"
         )
+    try:  # JAX only logs when it cannot write an entry: an unusable cache would keep nothing
+        check_cache_dir(args.cache)
+    except OSError as err:
+        raise UsageError(f"warmup: {err}") from None
     import jax
 
     if args.x64:
@@ -101,7 +105,49 @@ def _warmup(args) -> int:
     return 0
 
 
+def _check_view_args(args) -> None:
+    """Everything `diffcloth view` can check before it simulates (UsageError, exit 2): the port
+    and host to serve on, the image size and level, and that --export can be written."""
+    import os
+    import socket
+
+    from diffcloth.outdir import UsageError
+
+    if not 0 <= args.port <= 65535:
+        raise UsageError(f"--port {args.port} is out of range; allowed 0-65535 (0: any free port)")
+    if args.export is None:
+        try:
+            socket.getaddrinfo(args.host, args.port, type=socket.SOCK_STREAM)
+        except (OSError, UnicodeError) as err:
+            raise UsageError(
+                f"--host {args.host!r} is not an address to serve on ({err})"
+            ) from None
+    if not 1 <= args.size <= 8192:
+        raise UsageError(f"--size {args.size} is out of range; allowed 1-8192 (pixels)")
+    if args.level is not None and not 2 <= args.level <= 64:
+        raise UsageError(f"--level {args.level} is out of range; allowed 2-64")
+    if args.overlay and args.export is None:
+        raise UsageError("--overlay applies to --export (a recording); add --export FILE.html")
+    if args.export is not None:
+        from diffcloth.runtime import unwritable_folder
+
+        path = Path(args.export)
+        if path.is_dir():
+            raise UsageError(f"--export {str(path)!r} is a folder; give a file, e.g. view.html")
+        parent = path.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent  # the folder export_html would create the file under
+        if not parent.is_dir():
+            raise UsageError(f"--export {str(path)!r}: {str(parent)!r} is not a folder")
+        why = unwritable_folder(parent)
+        if why is None and path.exists() and not os.access(path, os.W_OK):
+            why = "the file is not writable"
+        if why:
+            raise UsageError(f"--export {str(path)!r}: {str(parent)!r}: {why}")
+
+
 def _view(args) -> int:
+    _check_view_args(args)
     try:
         from diffcloth.view.cli import run
     except ImportError as err:
@@ -332,7 +378,8 @@ def _run(args) -> int:
             try:
                 enable_compilation_cache(args.cache)
             except OSError as err:  # a read-only home, say: run without the cache
-                print(f"warning: compilation cache disabled ({err})", file=sys.stderr)
+                if args.command != "warmup":  # warmup needs it: _warmup refuses (exit 2)
+                    print(f"warning: compilation cache disabled ({err})", file=sys.stderr)
         return args.func(args)
     except KeyboardInterrupt:
         _discard()

@@ -8,12 +8,15 @@ import sys
 import time
 
 
-def check_config(path, command: str = "render", *, allow_unstable: bool = False):
+def check_config(
+    path, command: str = "render", *, allow_unstable: bool = False, smoke: bool = False
+):
     """The checks `diffcloth COMMAND CONFIG` runs before any work, without running it: the config
     (ConfigError, every value also in the run's dtype), the memory estimate (MemoryLimitError),
     the stability gate (physics.UnstableStepError unless `allow_unstable`) and, for render and
-    fit, the Scene and the [truth]/[fit.initial] values against it. Returns the Scene (or the
-    Config for simulate).
+    fit, the Scene and the [truth]/[fit.initial] values against it; for fit also the target
+    images ([fit] targets). `smoke`: the `fit --smoke` variant (tiny sizes). Returns the Scene
+    (or the Config for simulate). `diffcloth warmup` runs it for every config before compiling.
     """
     from diffcloth import memory
     from diffcloth.config import ConfigError, load_config
@@ -24,7 +27,13 @@ def check_config(path, command: str = "render", *, allow_unstable: bool = False)
     config = load_config(path)
     if command == "fit" and config.fit is None:
         raise ConfigError(f"{path}: missing [fit] section")
+    if smoke and command == "fit":
+        from diffcloth.experiment import smoke_config
+
+        config = smoke_config(config)
     multistart = config.fit.multistart if command == "fit" else 1
+    if smoke and command == "fit":
+        multistart = min(multistart, 2)
     memory.check_memory(
         memory.estimate_memory(
             memory.JobSizes.from_config(config), command, multistart=multistart
@@ -47,6 +56,10 @@ def check_config(path, command: str = "render", *, allow_unstable: bool = False)
         _check_values(scene, config.fit.truth, "truth")
         _check_values(scene, config.fit.initial, "fit.initial")
         _check_stable_values(scene, config.fit, stability)
+        if config.fit.targets is not None:
+            from diffcloth.experiment import load_targets
+
+            load_targets(config.fit, scene)
     return scene
 
 

@@ -27,12 +27,14 @@ __all__ = [
     "SMALL_LOOP_BYTES",
     "YNN_NO_REDUCE",
     "cache_disabled",
+    "check_cache_dir",
     "default_cache_dir",
     "enable_compilation_cache",
     "environment",
     "malloc_tuned",
     "tune_malloc",
     "tune_xla_cpu",
+    "unwritable_folder",
 ]
 
 SMALL_LOOP_KEY = "xla_cpu_small_while_loop_byte_threshold"
@@ -84,6 +86,47 @@ def enable_compilation_cache(
     path.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
+    return path
+
+
+def unwritable_folder(folder: str | Path) -> str | None:
+    """Why files cannot be written into `folder` (an existing folder), or None. Marked read-only
+    (no write permission bit at all: refused even for root, who could write anyway), or a real
+    write of a probe file fails (permissions, a read-only file system)."""
+    import stat
+    import tempfile
+
+    folder = Path(folder)
+    try:
+        if not stat.S_IMODE(folder.stat().st_mode) & 0o222:
+            return "it is read-only (no write permission)"
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".diffcloth-write-test-"):
+            pass
+    except OSError as err:
+        return f"cannot write there ({err.strerror or err})"
+    return None
+
+
+def check_cache_dir(path: str | Path | None = None) -> Path:
+    """The compilation cache folder (default `default_cache_dir()`), made if missing, or OSError
+    saying why it cannot hold the cache: a file in the way, no permission to write, a read-only
+    file system. JAX itself only logs a warning when it cannot write a cache entry, so a warm-up
+    into an unusable folder would otherwise compile everything and keep nothing."""
+    path = Path(path).expanduser() if path is not None else default_cache_dir()
+    if path.exists() and not path.is_dir():
+        raise OSError(
+            f"compilation cache {str(path)!r} is not a folder; name another with --cache DIR"
+        )
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        why = f"cannot be made ({err.strerror or err})"
+    else:
+        why = unwritable_folder(path)
+    if why:
+        raise OSError(
+            f"compilation cache folder {str(path)!r}: {why}; name another with --cache DIR"
+        )
     return path
 
 

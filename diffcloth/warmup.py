@@ -29,10 +29,14 @@ def warmup(configs, *, smoke: bool = False, log=print) -> list[dict]:
     Returns:
       One dict per config: config, seconds, status of the one-step fit.
     Raises:
-      ConfigError, UsageError (ValueErrors) as `diffcloth fit` does, before any compilation.
+      ConfigError, UsageError (ValueErrors) as `diffcloth fit` does, for any of the configs,
+      before the first is compiled (`cli_commands.check_config` runs on all of them first).
     """
+    from diffcloth.cli_commands import check_config
     from diffcloth.experiment import run_fit_config
 
+    for path in configs:  # every config's checks before any compilation
+        check_config(path, "fit", smoke=smoke)
     rows = []
     for path in configs:
         t = time.perf_counter()

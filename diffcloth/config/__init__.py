@@ -81,6 +81,7 @@ __all__ = [
     "SphereConfig",
     "array_of_tables",
     "build_physics",
+    "check_config_path",
     "check_devices",
     "check_keys",
     "dataclass_keys",
@@ -170,9 +171,34 @@ def _check_across_sections(config: Config) -> None:
         )
 
 
-def load_config(path) -> Config:
-    """Read and validate a TOML scene config. Raises ConfigError (a ValueError) on bad content."""
+def check_config_path(path) -> Path:
+    """The path of a config file, refused (ConfigError) unless it names a regular file: a FIFO
+    would block the read forever, a device would read garbage, a folder cannot be read."""
+    import stat
+
     path = Path(path)
+    try:
+        mode = path.stat().st_mode  # follows symlinks: a link to a regular file is fine
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read the config ({err.strerror or err})") from None
+    if not stat.S_ISREG(mode):
+        kind = (
+            "a folder" if stat.S_ISDIR(mode)
+            else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
+            else "a socket" if stat.S_ISSOCK(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "not a regular file"
+        )  # fmt: skip
+        raise ConfigError(f"{path} is {kind}, not a config file; give a TOML file")
+    return path
+
+
+def load_config(path) -> Config:
+    """Read and validate a TOML scene config. Raises ConfigError (a ValueError) on bad content,
+    and for a path that is not a regular file (`check_config_path`: a FIFO is refused, not read)."""
+    path = check_config_path(path)
     try:
         with path.open("rb") as fh:
             data = tomllib.load(fh)
