@@ -84,7 +84,7 @@ def load_checkpoint(path) -> dict[str, Any]:
         "history": {"params": {}, "grad_norm": {}}, "tracker": {}, "meta": {},
     }  # fmt: skip
     try:
-        with np.load(path) as z:
+        with open(path, "rb") as fh, np.load(fh) as z:  # (np.load(path) leaks it on a bad file)
             for key in sorted(z.files):
                 if key == "step":
                     out["step"] = int(z[key])

@@ -212,7 +212,10 @@ def initial_from_checkpoint(path, settings, sc) -> tuple[Path, dict, str]:
     p = _checkpoint_file(path)
     if not p.is_file():
         raise ValueError(f"--init-from: no checkpoint {str(p)!r}")
-    ck = read_checkpoint(p)
+    try:
+        ck = read_checkpoint(p)
+    except ValueError as err:
+        raise ValueError(f"--init-from: {err}") from None
     best = ck.get("best") or ck.get("params")
     names = [n for n in settings.free if n not in (settings.ties or {})]
     initial = dict(settings.initial)
