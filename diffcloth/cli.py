@@ -348,10 +348,14 @@ def main(argv=None) -> int:
     error), 2 bad usage or config (a one-line message naming the key/file/option), 130 / 143
     interrupted by SIGINT / SIGTERM (`diffcloth.signals`). `--debug` shows the traceback instead."""
     args = build_parser().parse_args(argv)
-    from diffcloth.signals import handle_signals
+    from diffcloth.signals import handle_signals, signal_name
 
     with handle_signals() as sig:  # SIGINT / SIGTERM for every command (diffcloth.signals)
         code = _run(args)
+    if sig.signum is not None and code == 0:  # the signal came as the command finished
+        print(f"\n{signal_name(sig.signum)} received as the run finished; its results are "
+              "complete", file=sys.stderr)  # fmt: skip
+        code = sig.exit_code
     if sig.signum is not None and argv is None:  # our own process: skip the teardown, where
         sys.stdout.flush()  # XLA's threads can crash a process interrupted mid-call
         sys.stderr.flush()

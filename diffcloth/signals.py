@@ -31,7 +31,15 @@ import sys
 import threading
 from collections.abc import Callable, Iterator
 
-__all__ = ["SignalState", "abort", "at_abort", "current", "deferred", "handle_signals"]
+__all__ = [
+    "SignalState",
+    "abort",
+    "at_abort",
+    "current",
+    "deferred",
+    "handle_signals",
+    "signal_name",
+]
 
 _ABORT_HOOKS: list[Callable[[], None]] = []
 _STATE: SignalState | None = None
@@ -86,7 +94,8 @@ def current() -> SignalState | None:
     return _STATE
 
 
-def _name(signum: int) -> str:
+def signal_name(signum: int) -> str:
+    """ "SIGINT", "SIGTERM", ... for a signal number."""
     try:
         return signal.Signals(signum).name
     except ValueError:
@@ -102,7 +111,7 @@ def abort(signum: int, note: str = "nothing written") -> None:
             pass
     try:
         sys.stdout.flush()
-        print(f"\ninterrupted by {_name(signum)} ({note})", file=sys.stderr, flush=True)
+        print(f"\ninterrupted by {signal_name(signum)} ({note})", file=sys.stderr, flush=True)
     except BaseException:  # noqa: BLE001  (a closed stream must not keep the process alive)
         pass
     _exit(128 + signum)
@@ -120,7 +129,7 @@ def _handler(signum, frame) -> None:
         state.event.set()
         if state.message:
             print(
-                f"\n{_name(signum)}: stopping after the current step and saving a checkpoint "
+                f"\n{signal_name(signum)}: stopping after the current step and saving a checkpoint "
                 "(send it again to stop at once, keeping nothing)",
                 file=sys.stderr,
                 flush=True,
