@@ -32,6 +32,9 @@ def warmup(configs, *, smoke: bool = False, log=print) -> list[dict]:
       ConfigError, UsageError (ValueErrors) as `diffcloth fit` does, for any of the configs,
       before the first is compiled (`cli_commands.check_config` runs on all of them first).
     """
+    import shutil
+
+    from diffcloth import signals
     from diffcloth.cli_commands import check_config
     from diffcloth.experiment import run_fit_config
 
@@ -41,9 +44,15 @@ def warmup(configs, *, smoke: bool = False, log=print) -> list[dict]:
     for path in configs:
         t = time.perf_counter()
         with tempfile.TemporaryDirectory(prefix="diffcloth-warmup-") as tmp:
-            summary = run_fit_config(
-                path, Path(tmp) / "fit", smoke=smoke, steps=1, progress=False, checkpoint_every=0
-            )
+            # a signal ends the process with os._exit (diffcloth.signals): remove it then too
+            hook = signals.at_abort(lambda tmp=tmp: shutil.rmtree(tmp, ignore_errors=True))
+            try:
+                summary = run_fit_config(
+                    path, Path(tmp) / "fit", smoke=smoke, steps=1, progress=False,
+                    checkpoint_every=0,
+                )  # fmt: skip
+            finally:
+                signals.forget(hook)
         row = {"config": str(path), "seconds": time.perf_counter() - t, "status": summary["status"]}
         log(f"  {path}: compiled in {row['seconds']:.1f} s")
         rows.append(row)

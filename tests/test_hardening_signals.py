@@ -249,3 +249,22 @@ def test_fit_sigterm_writes_checkpoint_and_exits_143(tmp_path):
     assert code == 143 and "--resume" in err and "Traceback" not in err, (code, err)
     assert (tmp_path / "fit" / "checkpoint.npz").exists() and not _leftovers(tmp_path)
     assert "interrupted" in (tmp_path / "fit" / "report.md").read_text().splitlines()[0]
+
+
+def test_warmup_abort_removes_its_temporary_folder(tmp_path, no_exit, monkeypatch, capsys):
+    from test_hardening import FIT, TRUTH
+
+    from diffcloth.warmup import warmup
+
+    seen = []
+
+    def stub(path, out_dir, **k):
+        seen.append(Path(out_dir).parent)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(1)
+
+    monkeypatch.setattr(experiment, "run_fit_config", stub)
+    cfg = write(tmp_path, TINY + FIT + TRUTH)
+    with signals.handle_signals(), pytest.raises(SystemExit) as exc:
+        warmup([cfg])
+    assert exc.value.code == 143 and seen and not seen[0].exists()
