@@ -76,6 +76,7 @@ def config_inputs(config_path) -> list[tuple[str, Path]]:
     except (OSError, ValueError):  # load_config reports it
         return found
     base = path.parent
+    home = base.resolve()
 
     def walk(value, where):
         if isinstance(value, dict):
@@ -88,10 +89,13 @@ def config_inputs(config_path) -> list[tuple[str, Path]]:
             p = Path(value).expanduser()
             p = p if p.is_absolute() else base / p
             try:
-                if p.exists():
+                full = p.resolve()
+                # "." and ".." name the config's own folders, not an input of their own (the
+                # config file is one already): they would refuse every --out beside the config
+                if p.exists() and full != home and full not in home.parents:
                     section, _, key = where.rpartition(".")
                     found.append((f"[{section}] {key}" if section else key, p))
-            except OSError:
+            except (OSError, RuntimeError):
                 pass
 
     walk(data, "")

@@ -92,6 +92,8 @@ def test_inputs_named_by_the_config_are_found(tmp_path):
     labels = dict((str(p.relative_to(tmp_path)), label) for label, p in
                   config_inputs(proj / "scene.toml"))  # fmt: skip
     assert labels == {"proj/scene.toml": "config", "proj/targets": "[fit] targets"}
+    (proj / "dot.toml").write_text(TINY + FIT + 'target_cameras = ["."]\ntargets = "targets"\n')
+    assert [lab for lab, _ in config_inputs(proj / "dot.toml")] == ["config", "[fit] targets"]
     (proj / "bad.toml").write_text("[net\n")  # unreadable: only the config itself
     assert [lab for lab, _ in config_inputs(proj / "bad.toml")] == ["config"]
 
