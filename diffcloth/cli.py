@@ -10,6 +10,7 @@ from pathlib import Path
 
 from diffcloth.cli_commands import (
     _check_positive,
+    _config_x64,
     _err,
     _force_host_devices,
     _render,
@@ -33,7 +34,7 @@ def _fit(args) -> int:
             f"({jax.devices()[0].platform}); on CPU set XLA_FLAGS="
             f"--xla_force_host_platform_device_count={args.devices} before JAX starts"
         )
-    if args.x64:
+    if args.x64 or _config_x64([args.config]):  # --x64 or [fit] x64 = true
         jax.config.update("jax_enable_x64", True)
     _check_positive("--steps", args.steps)
     from diffcloth.experiment import run_fit_config
@@ -95,7 +96,7 @@ def _warmup(args) -> int:
         raise UsageError(f"warmup: {err}") from None
     import jax
 
-    if args.x64:
+    if args.x64 or _config_x64(args.configs):  # warm up what `fit` will run
         jax.config.update("jax_enable_x64", True)
     from diffcloth.warmup import warmup
 
@@ -273,6 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--size", type=int, default=None, help="override [render] width and height")
+    r.add_argument("--frames", type=int, default=None, help="override [sim] num_frames")
     r.add_argument("--format", choices=("mp4", "gif"), default="mp4", help="video format")
     r.add_argument("--fps", type=float, default=30.0)
     r.add_argument("--chunk", type=int, default=10, help="frames rendered per compiled call")

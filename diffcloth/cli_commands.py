@@ -63,6 +63,21 @@ def check_config(
     return scene
 
 
+def _config_x64(paths) -> bool:
+    """True when a fit config asks for float64 ([fit] x64 = true): the CLI turns JAX's x64 on
+    before any work, as --x64 does. A config that does not load is left to the real checks."""
+    from diffcloth.config import load_config
+
+    for path in paths:
+        try:
+            fit = load_config(path).fit
+        except (ValueError, OSError):
+            continue
+        if fit is not None and fit.x64:
+            return True
+    return False
+
+
 def _err(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr, flush=True)
 
@@ -238,11 +253,24 @@ def _render(args) -> int:
 
     _check_positive("--size", args.size)
     _check_positive("--chunk", args.chunk)
-    if not (args.fps > 0 and args.fps < 1000):
-        from diffcloth.outdir import UsageError
+    _check_positive("--frames", args.frames)
+    from diffcloth.outdir import UsageError
 
+    if not (args.fps > 0 and args.fps < 1000):
         raise UsageError(f"--fps must be in (0, 1000), got {args.fps}")
     config = load_config(args.config)
+    if args.frames is not None:  # override [sim] num_frames, as simulate --frames does
+        stride = config.render.frame_stride
+        if args.frames < stride:
+            raise UsageError(
+                f"--frames {args.frames} is below [render] frame_stride = {stride}, so no frame "
+                f"would be rendered; allowed >= {stride}"
+            )
+        import dataclasses
+
+        config = dataclasses.replace(
+            config, sim=dataclasses.replace(config.sim, num_frames=args.frames)
+        )
     sizes = memory.JobSizes.from_config(config, size=args.size)
     memory.check_memory(
         memory.estimate_memory(sizes, "render", chunk=args.chunk),

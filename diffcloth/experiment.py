@@ -280,6 +280,15 @@ def run_fit_config(
             'e.g. free = ["stretch"]'
         )
     settings = config.fit
+    if settings.x64:
+        import jax
+
+        if not jax.config.jax_enable_x64:
+            raise cfg.ConfigError(
+                f"{config_path}: [fit] x64 = true needs JAX's float64 mode: turn it on before "
+                "building anything (jax.config.update('jax_enable_x64', True)); `diffcloth fit` "
+                "does that itself"
+            )
     if smoke:
         config = smoke_config(config)
         settings = dataclasses.replace(settings, steps=2, multistart=min(settings.multistart, 2))

@@ -4,6 +4,97 @@ Cases are numbered as in the issue (1 blow-ups ... 10 free fall). CLI cases go t
 `diffcloth.cli.main` in-process (cheap: most are refused before anything is compiled) on a tiny
 4 x 4 net, 16 x 16 px scene. The fuzz test of the configs is in test_config_fuzz.py, the PNG and
 colour round trips in test_io_colour.py, the fit loop's resume in test_fit_resume.py.
+
+Issue 35 (hardening, round two): each case and the test that proves it, in
+tests/test_hardening_<file>.py (outdir, resume, signals, values, targets, checks,
+cli_configs).
+
+| class | case -> test |
+|---|---|
+| 1 | --out that is, holds or lies inside an input (config, targets, checkpoint), --overwrite too |
+|   | -> outdir::test_out_holding_or_inside_an_input_is_refused_even_with_overwrite |
+|   | -> outdir::test_init_from_checkpoint_and_resumed_config_copy_are_inputs |
+|   | -> outdir::test_inputs_named_by_the_config_are_found |
+| 1 | fuzz over --out layouts (equal, inside, parent, symlinks, files): inputs byte-identical |
+|   | -> outdir::test_fuzz_output_layouts_never_change_an_input |
+| 1 | two runs into one new --out: exactly one succeeds, the other exits 2 with a message |
+|   | -> outdir::test_two_processes_into_one_new_out_exactly_one_succeeds |
+|   | -> outdir::test_a_second_writer_is_refused_at_once_and_the_lock_goes_with_the_first |
+|   | -> outdir::test_commit_refuses_a_folder_filled_meanwhile_and_stale_temporaries_go |
+| 1 | a symlinked --out is written through (link kept; dangling, loop, link to an input) |
+|   | -> outdir::test_symlinked_out_is_written_through_and_kept |
+| 1 | a failed bench --out keeps the earlier result; bench --out holding its scripts |
+|   | -> outdir::test_bench_out_is_an_output_folder |
+| 1 | SIGTERM during simulate leaves no hidden temporary folder (and keeps an older result) |
+|   | -> signals::test_simulate_sigint_in_a_long_compiled_call_and_sigterm_keep_old_results |
+| 2 | --resume after the config changed: refused naming the keys (5 kinds of change) |
+|   | -> resume::test_resume_after_the_config_changed_is_refused_naming_what |
+| 2 | --resume after a target image changed: refused naming camera and image |
+|   | -> resume::test_resume_after_a_target_image_changed_is_refused_naming_it |
+| 2 | the record, --smoke; steps/patience may change; --init-from starts anew (real fit) |
+|   | -> resume::test_checkpoint_records_the_problem, test_resume_may_change_the_steps |
+|   | -> resume::test_resume_of_a_real_fit_continues_and_init_from_starts_anew |
+|   | -> resume::test_init_from_mistakes |
+| 2 | truncated, empty, garbage, odd-entry .npz; bad, missing, out-of-step sidecar: exit 2 |
+|   | -> resume::test_a_damaged_checkpoint_names_the_file_exit_2 (10 cases) |
+| 3 | Ctrl-C in a long compiled call exits 130, not 139; SIGTERM 143, nothing left behind |
+|   | -> signals::test_simulate_sigint_in_a_long_compiled_call_and_sigterm_keep_old_results |
+| 3 | a second Ctrl-C in a garbage-collector callback; a fit stopped twice writes nothing |
+|   | -> signals::test_second_sigint_in_a_gc_callback_and_fit_double_sigint |
+| 3 | one handler for every command: abort, cooperative fit, deferred commit, exit codes |
+|   | -> signals::test_abort_discards_the_temporary_folder_and_exits_128_plus_signum |
+|   | -> signals::test_cooperative_first_signal_sets_the_event_second_aborts |
+|   | -> signals::test_a_signal_during_the_commit_waits_for_it |
+|   | -> signals::test_fit_stopped_by_sigterm_exits_143, test_bench_sigterm_stops_its_benchmark_too |
+|   | -> signals::test_fit_sigterm_writes_checkpoint_and_exits_143 (slow) |
+| 4 | width = 1e39, density = 1e-46, dt = 1e-46 (and 14 more keys) in float32: key named |
+|   | -> values::test_simulate_refuses_values_that_leave_float32_naming_the_key |
+| 4 | derived masses, rest lengths, spring weights, substep out of float32 |
+|   | -> values::test_simulate_refuses_values_that_leave_float32_naming_the_key (DERIVED) |
+| 4 | render and fit refuse the same; [truth], [fit.initial], [fit] values |
+|   | -> values::test_render_and_fit_refuse_the_same_values |
+|   | -> values::test_fit_values_are_checked_too |
+| 4 | the check knows the dtype: --x64 accepts what float32 refuses |
+|   | -> values::test_x64_run_accepts_what_float32_refuses |
+|   | -> values::test_the_same_values_pass_in_float64 |
+| 4 | apply_params checks the scene's dtype; so do the physics constructors |
+|   | -> values::test_apply_params_checks_the_scene_dtype |
+|   | -> values::test_constructors_check_their_dtype |
+| 4 | one stability refusal in simulate, render, fit (and at [truth]/[fit.initial]) |
+|   | -> values::test_stability_refusal_is_the_same_in_every_command |
+|   | -> values::test_fit_refuses_a_truth_or_start_the_scene_cannot_step |
+| 5 | interlaced (Adam7) 16-bit PNG read at full depth, not as dark 8-bit sRGB |
+|   | -> targets::test_interlaced_16_bit_target_is_read_at_full_depth_not_as_dark_srgb |
+|   | -> targets::test_adam7_round_trips_every_layout_exactly |
+| 5 | palette and sub-8-bit PNGs by the same reader; bad headers name the file |
+|   | -> targets::test_palette_and_sub_8_bit_pngs_are_read_by_the_same_reader |
+|   | -> targets::test_invalid_png_headers_are_refused_naming_the_file |
+| 5 | numbered sequence with a gap refused naming the missing frame |
+|   | -> targets::test_fit_refuses_a_numbered_sequence_with_a_gap |
+|   | -> targets::test_even_sequences_pass |
+| 5 | float targets outside [0, 1] refused by validate_targets |
+|   | -> targets::test_float_targets_outside_0_1_are_refused |
+| 5 | a ragged list of frames names `targets` |
+|   | -> targets::test_ragged_target_lists_name_targets |
+|   | -> targets::test_fit_refuses_ragged_and_negative_targets_before_compiling |
+| 6 | warmup checks all its configs before compiling the first |
+|   | -> checks::test_warmup_checks_every_config_before_compiling_the_first |
+| 6 | warmup with an unusable cache folder exits 2 |
+|   | -> checks::test_warmup_refuses_an_unusable_cache_folder |
+| 6 | view --port 70000 (and bad --size, --level, --host) refused at once |
+|   | -> checks::test_view_refuses_bad_options_at_once |
+| 6 | view --export into a read-only folder refused before simulating |
+|   | -> checks::test_view_export_that_cannot_be_written_is_refused_before_simulating |
+| 6 | a FIFO (device, folder) config path refused by every command |
+|   | -> checks::test_every_command_refuses_a_fifo_config |
+|   | -> checks::test_fifo_config_in_a_fresh_process_exits_2_quickly |
+| 7 | CLI fit of a Provot config (AttributeError 'stretch') |
+|   | -> cli_configs::test_cli_simulate_render_fit_for_every_material_model |
+| 7 | simulate, render, fit --smoke of every shipped config (slow) |
+|   | -> cli_configs::test_cli_simulate_render_fit_for_every_shipped_config |
+| 7 | the cross-engine recipe as a config (LM tolerances, x64) |
+|   | -> cli_configs::test_the_cross_engine_recipe_is_a_config |
+|   | -> cli_configs::test_new_fit_keys_are_validated |
 """
 
 import json

@@ -11,7 +11,9 @@
         method = "auto" | "lm" | "adam" (auto: Levenberg-Marquardt for l2/pyramid and <= 16
         scalar parameters), stages = "default" | "none" | [{min_level = 2, frames = 0.5}, ...]
         (a stage may also set free = [subset] and scan = {name = [factors]}: diffcloth.fit.staged)
-        (LM coarse-to-fine), lm_patience = 6,
+        (LM coarse-to-fine), lm_patience = 6, lm_xtol = 1e-5, lm_ftol = 1e-6, lm_tau = 1e-3,
+        lm_polish = 10 (LM tolerances, initial damping, Gauss-Newton polish steps),
+        x64 = false (fit in float64: `diffcloth fit` turns JAX's x64 on, as --x64 does),
         ties = { shear = "stretch", bend = "1e-4 * stretch" }   (tied parameters, not fitted)
         targets = "folder"   (instead of [truth]: PNGs, one subfolder cam0, cam1, ... per camera
                               or the PNGs directly for a single camera)
@@ -61,6 +63,11 @@ class FitSettings:
     stages: Any = None
     lm_patience: int = 6
     lm_stage_steps: int = 20
+    lm_xtol: float = 1e-5
+    lm_ftol: float = 1e-6
+    lm_tau: float = 1e-3
+    lm_polish: int = 10
+    x64: bool = False
 
     def engine(self, **runtime):
         """The loop settings (`diffcloth.fit.settings.FitSettings`) of this [fit] section: the
@@ -70,7 +77,7 @@ class FitSettings:
         shared = {f.name for f in dataclasses.fields(LoopSettings)} & {
             f.name for f in dataclasses.fields(self)
         }
-        shared -= {"devices"}  # 1 here means "one device" (None in the loop)
+        shared -= {"devices", "x64"}  # devices: 1 here means "one device" (None in the loop)
         values = {k: getattr(self, k) for k in shared}
         values["devices"] = self.devices if self.devices > 1 else None
         values.update(runtime)
@@ -120,6 +127,13 @@ def _parse_engine(t: Mapping[str, Any], free) -> dict:
     out["lm_stage_steps"] = cfg.get_number(
         t, "lm_stage_steps", 20, where=w, lo=1, hi=1000, integer=True
     )
+    # LM tolerances and damping (diffcloth.fit.settings.FitSettings; the cross-engine recipe
+    # sets lm_xtol = 1e-3, lm_ftol = 1e-5, lm_tau = 1, lm_polish = 0)
+    out["lm_xtol"] = cfg.get_number(t, "lm_xtol", 1e-5, where=w, lo=0, hi=1, lo_inclusive=False)
+    out["lm_ftol"] = cfg.get_number(t, "lm_ftol", 1e-6, where=w, lo=0, hi=1, lo_inclusive=False)
+    out["lm_tau"] = cfg.get_number(t, "lm_tau", 1e-3, where=w, lo=0, hi=1e6, lo_inclusive=False)
+    out["lm_polish"] = cfg.get_number(t, "lm_polish", 10, where=w, lo=0, hi=1000, integer=True)
+    out["x64"] = cfg.get_bool(t, "x64", False, where=w)
     return out
 
 
