@@ -76,7 +76,7 @@ cli_configs).
 |   | -> targets::test_float_targets_outside_0_1_are_refused |
 | 5 | a ragged list of frames names `targets` |
 |   | -> targets::test_ragged_target_lists_name_targets |
-|   | -> targets::test_fit_refuses_ragged_and_negative_targets_before_compiling |
+|   | -> targets::test_fit_refuses_ragged_and_0_255_targets_before_compiling |
 | 6 | warmup checks all its configs before compiling the first |
 |   | -> checks::test_warmup_checks_every_config_before_compiling_the_first |
 | 6 | warmup with an unusable cache folder exits 2 |

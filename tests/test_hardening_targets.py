@@ -283,14 +283,14 @@ def test_ragged_target_lists_name_targets(targets, needles):
         assert n in msg, (n, msg)
 
 
-def test_fit_refuses_ragged_and_negative_targets_before_compiling(tiny):
+def test_fit_refuses_ragged_and_0_255_targets_before_compiling(tiny):
     import diffcloth as dc
 
     ragged = [np.zeros((16, 16, 3))] * 2 + [np.zeros((8, 16, 3))]
     with pytest.raises(ValueError, match="targets is a ragged list"):
         dc.fit.fit(tiny, ragged, ["bend"], steps=1)
-    with pytest.raises(ValueError, match="outside the allowed"):
-        dc.fit.fit(tiny, -np.ones(tiny.video_shape), ["bend"], steps=1)
+    with pytest.raises(ValueError, match="0..255"):
+        dc.fit.fit(tiny, np.full(tiny.video_shape, 200.0), ["bend"], steps=1)
 
 
 @pytest.fixture(scope="module")

@@ -284,8 +284,8 @@ def validate_targets(
       dtype: optional float dtype of the result.
       check_range: check float data against `value_range` (False: any finite value).
       value_range: (low, high) allowed for float data (None: unbounded); default [0, 1], what an
-        image holds. `diffcloth.fit.fit` passes (0, None): a rendered (linear) video may exceed
-        1 at highlights, so synthetic targets can too, but nothing is negative.
+        image holds. `diffcloth.fit.fit` passes (None, 2): a rendered (linear) video exceeds 1 at
+        highlights and noisy synthetic targets dip below 0; only 0..255-looking data is refused.
     Returns:
       A float numpy array of the expected shape.
     Raises:
@@ -356,7 +356,8 @@ def validate_targets(
             if hi_ok is not None:
                 bad |= arr > hi_ok
             first = tuple(int(i) for i in np.argwhere(bad)[0])
-            allowed = f"[{lo_ok:g}, {'inf' if hi_ok is None else format(hi_ok, 'g')}]"
+            lo_t = "-inf" if lo_ok is None else format(lo_ok, "g")
+            allowed = f"[{lo_t}, {'inf' if hi_ok is None else format(hi_ok, 'g')}]"
             raise ValueError(
                 f"{name} has float values in [{lo:g}, {hi:g}], {int(bad.sum())} of them outside "
                 f"the allowed {allowed} (first at index {first}); clip them (np.clip(x, 0, 1)) "

@@ -254,8 +254,9 @@ def fit(
     targets = as_target_array(targets, "targets")
     if targets.ndim == 4 and len(scene.cameras) == 1:
         targets = targets[None]
-    # rendered (linear) videos exceed 1 at highlights: synthetic targets may too, never < 0
-    targets = validate_targets(targets, scene.video_shape, name="targets", value_range=(0.0, None))
+    # rendered (linear) videos exceed 1 at highlights and noisy synthetic targets ([fit] noise)
+    # dip below 0: only data that looks like 0..255 is refused here
+    targets = validate_targets(targets, scene.video_shape, name="targets", value_range=(None, 2.0))
     targets = jnp.asarray(targets, scene.material.density.dtype)
     init = {
         n: np.asarray(init[n] if init and n in init else pipeline.param_value(scene, n))
