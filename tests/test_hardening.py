@@ -47,6 +47,8 @@ cli_configs).
 |   | -> signals::test_a_signal_during_the_commit_waits_for_it |
 |   | -> signals::test_fit_stopped_by_sigterm_exits_143, test_bench_sigterm_stops_its_benchmark_too |
 |   | -> signals::test_fit_sigterm_writes_checkpoint_and_exits_143 (slow) |
+| 3 | warmup interrupted: its temporary fit folder goes too (os._exit skips the cleanup) |
+|   | -> signals::test_warmup_abort_removes_its_temporary_folder |
 | 4 | width = 1e39, density = 1e-46, dt = 1e-46 (and 14 more keys) in float32: key named |
 |   | -> values::test_simulate_refuses_values_that_leave_float32_naming_the_key |
 | 4 | derived masses, rest lengths, spring weights, substep out of float32 |
