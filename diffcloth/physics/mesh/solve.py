@@ -1,0 +1,462 @@
+"""Solvers of the mesh cloth: the static equilibrium (the shape at rest), implicit Euler and
+symplectic Euler steps, and a rollout.
+
+Equilibrium: minimise the total potential Pi(x) = membrane + bending + gravity + contact over
+the free vertices with a damped Newton method (Levenberg-Marquardt in the mass metric): each
+iteration solves (H + mu M) p = -grad Pi by conjugate gradients on Hessian-vector products,
+accepts the step if it lowers Pi (mu shrinks) and rejects it otherwise (mu grows). A small mu
+is Newton's method; a large one is a short implicit-Euler step of pseudo-time 1/sqrt(mu), so the
+solve also crosses the buckling (fold-forming) region of a drape where the Hessian is
+indefinite. Its gradient is the implicit function theorem's (`jax.lax.custom_root`): one linear
+solve with the Hessian at the solution, never a pass back through the iterations.
+
+Implicit Euler minimises the incremental potential |x - x_n - h v_n|_M^2 / (2 h^2) + Pi(x) plus
+damping, drag and lagged Coulomb friction (same Newton solve, same implicit gradient).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from diffcloth.physics.mesh import colliders as mc
+from diffcloth.physics.mesh import energy, hessian, linsolve
+from diffcloth.physics.mesh.fabric import Fabric
+from diffcloth.physics.mesh.topology import ClothMesh
+from diffcloth.physics.state import ClothState
+
+__all__ = [
+    "EquilibriumResult",
+    "NotConvergedError",
+    "SolverSettings",
+    "check_equilibrium",
+    "equilibrium",
+    "implicit_step",
+    "mesh_rollout",
+    "potential",
+    "symplectic_step",
+]
+
+
+class NotConvergedError(RuntimeError):
+    """A mesh solve stopped before its tolerance, or produced non-finite values."""
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SolverSettings:
+    """Newton-CG settings (static).
+
+    Attributes:
+      max_iters: Newton iterations at most (equilibrium: accepted and rejected steps together).
+      cg_iters: conjugate-gradient iterations per Newton step at most.
+      cg_tol: relative residual of each CG solve (and of the gradient's adjoint solve).
+      tol: convergence: the largest free-vertex force below tol times the vertex's weight
+        (|grad Pi_i| <= tol m_i |g|), dimensionless.
+      mu0: initial regularisation, 1/s^2 (the mass metric's weight: 1/mu0 is a pseudo time step
+        squared).
+      linear_solver: "direct" (sparse LU on the host, `linsolve`; robust for stiff fabrics) or
+        "cg" (block-Jacobi conjugate gradients in the compiled program).
+      krylov_iters: with "direct", CG iterations per Newton step on the exact Hessian,
+        preconditioned by the LU of its PSD approximation (Newton's fast final convergence).
+    """
+
+    max_iters: int = dataclasses.field(default=200, metadata={"static": True})
+    cg_iters: int = dataclasses.field(default=300, metadata={"static": True})
+    cg_tol: float = dataclasses.field(default=1e-3, metadata={"static": True})
+    tol: float = dataclasses.field(default=1e-3, metadata={"static": True})
+    mu0: float = dataclasses.field(default=1e2, metadata={"static": True})
+    linear_solver: str = dataclasses.field(default="direct", metadata={"static": True})
+    krylov_iters: int = dataclasses.field(default=10, metadata={"static": True})
+
+
+class EquilibriumResult(NamedTuple):
+    """x: (n, 3) m; converged: () bool; iterations: () int; residual: () the largest free force
+    over its vertex weight (dimensionless); energy: () J."""
+
+    x: jax.Array
+    converged: jax.Array
+    iterations: jax.Array
+    residual: jax.Array
+    energy: jax.Array
+
+
+def potential(cloth: ClothMesh, fabric: Fabric, x, gravity, colliders=None):
+    """Total potential energy in J: elastic + gravity + contact penalty. x: (n, 3) m."""
+    e = energy.elastic_energy(cloth, fabric, x) + energy.gravity_energy(cloth, fabric, x, gravity)
+    if mc.has_colliders(colliders):
+        e = e + mc.contact_energy(colliders, x, cloth.vertex_area, ~cloth.pinned)
+    return e
+
+
+def _cg(apply_a, b, precond, iters: int, rtol: float):
+    """Preconditioned conjugate gradients for A z = b (A symmetric), stopping at a relative
+    residual rtol, after `iters`, or at a direction of non-positive curvature (then ok is
+    False unless some progress was made). Returns (z, ok, iterations)."""
+    bnorm = jnp.sqrt(jnp.vdot(b, b))
+
+    def cond(c):
+        z, r, p, rz, k, ok, done = c
+        return (~done) & (k < iters)
+
+    def body(c):
+        z, r, p, rz, k, ok, done = c
+        ap = apply_a(p)
+        pap = jnp.vdot(p, ap)
+        neg = pap <= 0
+        alpha = rz / jnp.where(neg, 1.0, pap)
+        z_new = jnp.where(neg, z, z + alpha * p)
+        r_new = jnp.where(neg, r, r - alpha * ap)
+        s = precond(r_new)
+        rz_new = jnp.vdot(r_new, s)
+        beta = rz_new / jnp.where(rz == 0, 1.0, rz)
+        p_new = s + beta * p
+        conv = jnp.sqrt(jnp.vdot(r_new, r_new)) <= rtol * bnorm
+        ok_new = jnp.where(neg, k > 0, ok)
+        return z_new, r_new, p_new, rz_new, k + 1, ok_new, done | neg | conv
+
+    s0 = precond(b)
+    init = (jnp.zeros_like(b), b, s0, jnp.vdot(b, s0), 0, jnp.array(True), bnorm == 0)
+    z, _, _, _, k, ok, _ = jax.lax.while_loop(cond, body, init)
+    return z, ok, k
+
+
+def _block_jacobi(diag_blocks, free):
+    """Preconditioner r -> D^-1 r from (n, 3, 3) diagonal blocks (identity where singular)."""
+    eye = jnp.eye(3, dtype=diag_blocks.dtype)
+    scale = jnp.maximum(jnp.trace(diag_blocks, axis1=1, axis2=2), 1e-30)[:, None, None]
+    inv = jnp.linalg.inv(diag_blocks / scale + 1e-10 * eye) / scale
+    inv = jnp.where(free[:, None, None], inv, 0.0)
+    return lambda r: jnp.einsum("nab,nb->na", inv, r)
+
+
+class _Problem(NamedTuple):
+    """Static description of a minimisation (hashable): its kind and solver settings."""
+
+    kind: str  # "static" | "implicit"
+    settings: SolverSettings
+    mu0: float
+    colliders: bool
+
+
+def cloth_of(theta) -> ClothMesh:
+    return theta["cloth"]
+
+
+def _place(theta, x):
+    return jnp.where(theta["free"][:, None], x, theta["x_pins"])
+
+
+def _energy(problem: _Problem, x, theta):
+    """The minimised energy in J at x (n, 3) (pinned vertices placed at x_pins)."""
+    cloth, fabric = theta["cloth"], theta["fabric"]
+    cols = theta["colliders"] if problem.colliders else None
+    x = _place(theta, x)
+    e = potential(cloth, fabric, x, theta["gravity"], cols)
+    if problem.kind == "implicit":
+        h, x_n = theta["h"], theta["x_n"]
+        mass = energy.vertex_mass(cloth, fabric)
+        x_tilde = x_n + h * theta["v_n"]
+        e = e + 0.5 * jnp.sum(mass[:, None] * (x - x_tilde) ** 2) / (h * h)
+        # Rayleigh damping: a Bregman divergence of the elastic energy (~ dx^T K dx / 2), / h
+        bregman = (energy.elastic_energy(cloth, fabric, x) - theta["el_prev"]
+                   - jnp.sum(theta["g_prev"] * (x - x_n)))  # fmt: skip
+        e = e + fabric.damping / h * bregman
+        rel = (x - x_n) - h * theta["wind"]
+        e = e + 0.5 * fabric.drag / h * jnp.sum(cloth.vertex_area[:, None] * rel * rel)
+        if problem.colliders:
+            e = e + _friction_energy(cols, x, x_n, cloth.vertex_area, theta["free"],
+                                     fabric.friction, _FRICTION_EPS)  # fmt: skip
+    return e
+
+
+def _hessian(problem: _Problem, x, theta):
+    """The assembled PSD Hessian approximation (n, K, 3, 3) of `_energy` at x."""
+    cloth, fabric = theta["cloth"], theta["fabric"]
+    x = _place(theta, x)
+    n = cloth.num_vertices
+    eye = jnp.eye(3, dtype=x.dtype)
+    diag = jnp.zeros((n, 3, 3), x.dtype)
+    scale = 1.0
+    if problem.colliders:
+        cols = theta["colliders"]
+        pen = mc.penetration(cols, x)
+        nrm = mc.contact_normals(cols, x)
+        kc = jnp.where(pen > 0, cols.stiffness * cloth.vertex_area, 0.0)
+        diag = diag + kc[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
+    if problem.kind == "implicit":
+        h = theta["h"]
+        mass = energy.vertex_mass(cloth, fabric)
+        diag = diag + (mass / (h * h) + fabric.drag * cloth.vertex_area / h)[:, None, None] * eye
+        scale = 1.0 + fabric.damping / h
+    return hessian.assemble(cloth, fabric, x, elastic_scale=scale, diag=diag)
+
+
+def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
+    """Minimise `_energy` over the free vertices from x0 (Levenberg-Marquardt-damped Newton,
+    PCG on the assembled Hessian)."""
+    st = problem.settings
+    cloth, fabric = theta["cloth"], theta["fabric"]
+    free = theta["free"]
+    fmask = free[:, None]
+    mass = energy.vertex_mass(cloth, fabric)
+    gnorm = jnp.sqrt(jnp.sum(theta["gravity"] ** 2))
+    weight = mass * jnp.maximum(gnorm, 1e-3)
+    total = lambda x: _energy(problem, x, theta)
+    grad_fn = jax.grad(total)
+    eye = jnp.eye(3, dtype=x0.dtype)
+
+    def residual(g):
+        r = jnp.max(jnp.where(free, jnp.sqrt(jnp.sum(g * g, axis=-1)) / weight, 0.0))
+        return jnp.where(jnp.isfinite(r), r, jnp.inf)
+
+    def cond(c):
+        x, e, g, mu, k, res = c
+        return (k < st.max_iters) & (res > st.tol) & jnp.isfinite(e) & (mu < 1e14)
+
+    def body(c):
+        x, e, g, mu, k, res = c
+        hmat = _hessian(problem, x, theta)
+        hmat = hmat.at[:, 0].add((mu * mass)[:, None, None] * eye)
+        apply_a = lambda p: hessian.matvec(cloth, hmat, p * fmask) * fmask
+        if st.linear_solver == "direct":
+            # Newton-Krylov: CG on the exact Hessian (+ mu M), preconditioned by the LU of the
+            # PSD approximation; at negative curvature, the approximation's own step
+            token = linsolve.factor(linsolve.pin_rows(hmat, cloth.neighbors, free), cloth.neighbors)
+            pre = lambda r: linsolve.solve(token, r) * fmask
+            hvp = lambda p: jax.jvp(grad_fn, (x,), (p,))[1]
+            exact = lambda p: (hvp(p * fmask) + mu * mass[:, None] * p) * fmask
+            p, ok, _ = _cg(exact, -g, pre, st.krylov_iters, st.cg_tol)
+            p = jnp.where(ok, p, pre(-g))
+            ok = jnp.all(jnp.isfinite(p))
+            p = jnp.where(ok, p, 0.0)
+        else:
+            pre = _block_jacobi(hessian.block_diagonal(hmat), free)
+            p, ok, _ = _cg(apply_a, -g, pre, st.cg_iters, st.cg_tol)
+        x_try = x + p * fmask
+        e_try = total(x_try)
+        accept = ok & jnp.isfinite(e_try) & (e_try <= e)
+        x = jnp.where(accept, x_try, x)
+        e = jnp.where(accept, e_try, e)
+        g = jnp.where(accept, grad_fn(x) * fmask, g)
+        mu = jnp.where(accept, jnp.where(mu * 0.25 < 1e-3, 0.0, mu * 0.25),
+                       jnp.maximum(mu * 8.0, 1.0))  # fmt: skip
+        return x, e, g, mu, k + 1, residual(g)
+
+    g0 = grad_fn(x0) * fmask
+    init = (x0, total(x0), g0, jnp.asarray(problem.mu0, x0.dtype), 0, residual(g0))
+    x, e, g, mu, k, res = jax.lax.while_loop(cond, body, init)
+    conv = (res <= st.tol) & jnp.all(jnp.isfinite(x))
+    return EquilibriumResult(x=_place(theta, x), converged=conv, iterations=k, residual=res,
+                             energy=e)  # fmt: skip
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _argmin(problem: _Problem, theta, x0):
+    return _newton(problem, theta, x0)
+
+
+def _argmin_fwd(problem, theta, x0):
+    out = _newton(problem, theta, x0)
+    return out, (out.x, theta, x0)
+
+
+def _argmin_bwd(problem, res, ct):
+    """Implicit function theorem: f(x, theta) = [free: grad E(x); pinned: x - x_pins] = 0, so
+    theta_bar = -(df/dtheta)^T lam with (df/dx) lam = x_bar, df/dx = diag(H_ff, I)."""
+    x, theta, x0 = res
+    xbar = ct.x
+    free = theta["free"]
+    fmask = free[:, None]
+    grad_fn = jax.grad(lambda y: _energy(problem, y, theta))
+    hvp = lambda p: jax.jvp(grad_fn, (x,), (p,))[1]
+    hmat = _hessian(problem, x, theta)
+    if problem.settings.linear_solver == "direct":  # the approximate Hessian's LU preconditions
+        nbr = cloth_of(theta).neighbors
+        token = linsolve.factor(linsolve.pin_rows(hmat, nbr, free), nbr)
+        pre = lambda r: linsolve.solve(token, r) * fmask
+    else:
+        pre = _block_jacobi(hessian.block_diagonal(hmat), free)
+    lam, _, _ = _cg(lambda p: hvp(p * fmask) * fmask, xbar * fmask, pre,
+                    4 * problem.settings.cg_iters, 1e-9)  # fmt: skip
+    lam = jnp.where(fmask, lam, xbar)
+
+    def f(th):
+        g = jax.grad(lambda y: _energy(problem, y, th))(x)
+        return jnp.where(fmask, g, x - th["x_pins"])
+
+    _, vjp = jax.vjp(f, theta)
+    (tbar,) = vjp(-lam)
+    return tbar, jnp.zeros_like(x0)
+
+
+_argmin.defvjp(_argmin_fwd, _argmin_bwd)
+
+
+def equilibrium(
+    cloth: ClothMesh,
+    fabric: Fabric,
+    x_start,
+    *,
+    gravity,
+    colliders=None,
+    x_pins=None,
+    settings: SolverSettings = SolverSettings(),
+) -> EquilibriumResult:
+    """The static equilibrium reached from x_start: a local minimum of `potential`.
+
+    Args:
+      cloth, fabric: the mesh and its material.
+      x_start: (n, 3) m, the start of the solve (a flat sheet, or a perturbed one to seed folds).
+      gravity: (3,) m/s^2.
+      colliders: MeshColliders or None.
+      x_pins: (n, 3) m, where the pinned vertices are held (default x_start).
+      settings: SolverSettings.
+    Returns:
+      EquilibriumResult; x is differentiable with respect to fabric, colliders, gravity, the
+      rest geometry and x_pins (implicit function theorem), not x_start. Check `converged` (or
+      call `check_equilibrium`): a solve that stopped early is not a rest shape.
+    """
+    x_start = jnp.asarray(x_start)
+    theta = {
+        "cloth": cloth,
+        "fabric": fabric,
+        "colliders": colliders,
+        "gravity": jnp.asarray(gravity, x_start.dtype),
+        "x_pins": x_start if x_pins is None else jnp.asarray(x_pins, x_start.dtype),
+        "free": ~cloth.pinned,
+    }
+    problem = _Problem("static", settings, float(settings.mu0), mc.has_colliders(colliders))
+    return _argmin(problem, theta, jax.lax.stop_gradient(x_start))
+
+
+def check_equilibrium(result: EquilibriumResult, what: str = "equilibrium") -> EquilibriumResult:
+    """Raise NotConvergedError (with the reason) unless the solve converged; returns result."""
+    if not bool(jnp.all(jnp.isfinite(result.x))):
+        raise NotConvergedError(f"{what}: the solve produced non-finite positions")
+    if not bool(result.converged):
+        raise NotConvergedError(
+            f"{what}: not converged after {int(result.iterations)} Newton iterations (largest "
+            f"free force {float(result.residual):.3g} x its vertex weight); raise "
+            "SolverSettings.max_iters, or start closer to the rest shape"
+        )
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# dynamics
+
+
+def _friction_energy(colliders, x, x_prev, area, free, friction, eps):
+    """Lagged Coulomb friction as a smooth dissipation potential (IPC style): mu lambda_i
+    (sqrt(|u_T|^2 + eps^2) - eps), with the normal force lambda_i and the contact normal taken
+    at the start of the step and u_T the tangential displacement."""
+    pen = jax.lax.stop_gradient(mc.penetration(colliders, x_prev))
+    lam = colliders.stiffness * area * pen
+    n = jax.lax.stop_gradient(mc.contact_normals(colliders, x_prev))
+    u = x - x_prev
+    ut = u - jnp.sum(u * n, axis=-1, keepdims=True) * n
+    slide = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps) - eps
+    return jnp.sum(jnp.where(free & (pen > 0), friction * colliders.friction * lam * slide, 0.0))
+
+
+def _project_out(colliders, x, v):
+    """Move vertices found inside a collider back to its surface and remove their inward
+    velocity (a safety net: the penalty keeps them in the contact layer)."""
+    if not mc.has_colliders(colliders):
+        return x, v
+    phi = mc.signed_distance(colliders, x)
+    n = mc.contact_normals(colliders, x)
+    inside = (phi < 0)[:, None]
+    x = jnp.where(inside, x - phi[:, None] * n, x)
+    vn = jnp.sum(v * n, axis=-1, keepdims=True)
+    v = jnp.where(inside & (vn < 0), v - vn * n, v)
+    return x, v
+
+
+_FRICTION_EPS = 1e-5  # m: tangential slip below which friction is smoothed (static regime)
+
+
+def implicit_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None, colliders=None,
+                  settings: SolverSettings = SolverSettings(max_iters=30)) -> ClothState:  # fmt: skip
+    """One implicit (backward) Euler step of length h (s): minimises the incremental potential
+    (module docstring) by Newton; differentiable by the implicit function theorem. Pinned
+    vertices keep their state. Non-convergence shows as non-finite positions (NaN), which the
+    rollout's checks report."""
+    x_n, v_n = state.x, state.v
+    dtype = x_n.dtype
+    theta = {
+        "cloth": cloth,
+        "fabric": fabric,
+        "colliders": colliders,
+        "gravity": jnp.asarray(gravity, dtype),
+        "x_pins": x_n,
+        "free": ~cloth.pinned,
+        "h": jnp.asarray(h, dtype),
+        "x_n": x_n,
+        "v_n": v_n,
+        "wind": jnp.zeros(3, dtype) if wind is None else jnp.asarray(wind, dtype),
+        "el_prev": energy.elastic_energy(cloth, fabric, x_n),
+        "g_prev": jax.grad(lambda y: energy.elastic_energy(cloth, fabric, y))(x_n),
+    }
+    problem = _Problem("implicit", settings, 0.0, mc.has_colliders(colliders))
+    res = _argmin(problem, theta, jax.lax.stop_gradient(x_n + h * v_n))
+    free = ~cloth.pinned
+    x = jnp.where(res.converged, res.x, jnp.nan)
+    v = jnp.where(free[:, None], (x - x_n) / h, v_n)
+    x, v = _project_out(colliders, x, v)
+    x = jnp.where(free[:, None], x, x_n)
+    return ClothState(x=x, v=v)
+
+
+def symplectic_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None,
+                    colliders=None) -> ClothState:  # fmt: skip
+    """One symplectic (semi-implicit) Euler step of length h (s); stable for h below about
+    sqrt(m / k) of the stiffest element (small steps only)."""
+    free = ~cloth.pinned
+    mass = energy.vertex_mass(cloth, fabric)
+    wind = jnp.zeros(3, state.x.dtype) if wind is None else wind
+    force = -jax.grad(lambda y: potential(cloth, fabric, y, gravity, colliders))(state.x)
+    # Rayleigh damping: -damping K v as a directional derivative of the elastic force
+    kv = jax.jvp(jax.grad(lambda y: energy.elastic_energy(cloth, fabric, y)), (state.x,),
+                 (state.v,))[1]  # fmt: skip
+    force = (
+        force - fabric.damping * kv - fabric.drag * cloth.vertex_area[:, None] * (state.v - wind)
+    )
+    v = state.v + h * force / jnp.maximum(mass, 1e-30)[:, None]
+    v = jnp.where(free[:, None], v, state.v)
+    x = state.x + h * v
+    x, v = _project_out(colliders, x, v)
+    x = jnp.where(free[:, None], x, state.x)
+    return ClothState(x=x, v=v)
+
+
+def mesh_rollout(cloth, fabric, state: ClothState, *, dt, num_frames: int, num_substeps: int = 1,
+                 integrator: str = "implicit", gravity, wind=None, colliders=None,
+                 settings: SolverSettings = SolverSettings(max_iters=20)) -> ClothState:  # fmt: skip
+    """The trajectory: ClothState with leaves (num_frames, n, 3), frame k being the state after
+    k + 1 frames of dt seconds (num_substeps steps each). lax.scan with a checkpointed body."""
+    h = dt / num_substeps
+    if integrator == "implicit":
+        step = lambda s: implicit_step(cloth, fabric, s, h, gravity=gravity, wind=wind,
+                                       colliders=colliders, settings=settings)  # fmt: skip
+    elif integrator == "symplectic":
+        step = lambda s: symplectic_step(cloth, fabric, s, h, gravity=gravity, wind=wind,
+                                         colliders=colliders)  # fmt: skip
+    else:
+        raise ValueError(f"integrator must be 'implicit' or 'symplectic', got {integrator!r}")
+
+    @jax.checkpoint
+    def frame(s, _):
+        s = (
+            jax.lax.fori_loop(0, num_substeps, lambda i, c: step(c), s)
+            if num_substeps > 1
+            else step(s)
+        )
+        return s, s
+
+    return jax.lax.scan(frame, state, length=num_frames)[1]
