@@ -146,8 +146,12 @@ def deferred(note: str = "nothing written") -> Iterator[None]:
     """A block that a signal does not cut short: the signal is acted on when the block ends
     (`note` says what the process leaves then)."""
     _DEFER["depth"] += 1
+    failed = False
     try:
         yield
+    except BaseException:
+        failed = True  # the block did not finish: it leaves nothing
+        raise
     finally:
         _DEFER["depth"] -= 1
         pending = _DEFER["pending"]
@@ -155,7 +159,7 @@ def deferred(note: str = "nothing written") -> Iterator[None]:
             _DEFER["pending"] = None
             state = _STATE
             if state is not None and not (state._cooperative and not state.event.is_set()):
-                abort(pending, note)
+                abort(pending, "nothing written" if failed else note)
 
 
 @contextlib.contextmanager
