@@ -53,11 +53,13 @@ from diffcloth.physics.mesh.solve import (
     potential,
     symplectic_step,
 )
+from diffcloth.physics.mesh.surface import DisplayMesh, cloth_surface, display_mesh, texture_uv
 from diffcloth.physics.mesh.topology import ClothMesh, make_cloth, pin_mask
 
 __all__ = [
     "FABRIC_FIELDS",
     "ClothMesh",
+    "DisplayMesh",
     "EquilibriumResult",
     "Fabric",
     "MeshColliders",
@@ -69,10 +71,12 @@ __all__ = [
     "bending_length",
     "check_equilibrium",
     "check_mesh",
+    "cloth_surface",
     "contact_energy",
     "curvatures",
     "dihedral_angles",
     "disc",
+    "display_mesh",
     "elastic_energy",
     "equilibrium",
     "fabric_preset",
@@ -93,6 +97,7 @@ __all__ = [
     "rectangle",
     "signed_distance",
     "symplectic_step",
+    "texture_uv",
     "validate_fabric",
     "vertex_mass",
 ]
