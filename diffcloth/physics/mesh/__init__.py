@@ -42,6 +42,15 @@ from diffcloth.physics.mesh.fabric import (
     make_fabric,
     validate_fabric,
 )
+from diffcloth.physics.mesh.measure import (
+    DrapeCoefficient,
+    Shadow,
+    cantilever_rigidity,
+    drape_coefficient,
+    drape_shadow,
+    node_count,
+    outline_radius,
+)
 from diffcloth.physics.mesh.solve import (
     EquilibriumResult,
     NotConvergedError,
@@ -100,4 +109,11 @@ __all__ = [
     "texture_uv",
     "validate_fabric",
     "vertex_mass",
+    "DrapeCoefficient",
+    "Shadow",
+    "cantilever_rigidity",
+    "drape_coefficient",
+    "drape_shadow",
+    "node_count",
+    "outline_radius",
 ]
