@@ -14,6 +14,7 @@ import numpy as np
 from diffcloth import render
 from diffcloth.physics.massspring import MASS_SPRING_FIELDS
 from diffcloth.physics.material import MATERIAL_FIELDS
+from diffcloth.physics.mesh.fabric import FABRIC_FIELDS
 from diffcloth.render.lights import appearance_fields
 from diffcloth.representable import check_physics, check_representable
 
@@ -60,6 +61,8 @@ PARAMETERS: dict[str, tuple[str, str]] = {
     **{name: ("material", name) for name in MATERIAL_FIELDS},
     # the Provot mass-spring model's own fields (density and friction are shared)
     **{name: ("material", name) for name in MASS_SPRING_FIELDS},
+    # the mesh cloth's Fabric fields (density, shear, damping and friction are shared names)
+    **{name: ("material", name) for name in FABRIC_FIELDS},
     "wind": ("sim", "wind"),
     **{name: ("appearance", name) for name in appearance_fields()},
     **{name: ("bodies", field) for name, field in BODY_PARAMETERS.items()},
@@ -95,6 +98,15 @@ class ParamRange:
         return bool(np.all(ok))
 
 
+def _fabric_range(name: str) -> ParamRange:
+    lo, lo_in, hi, hi_in, unit, _ = FABRIC_FIELDS[name]
+    return ParamRange(lo, None if hi == float("inf") else hi, lo_in, hi_in, unit)
+
+
+#: name -> ParamRange of a mesh cloth's Fabric fields (`param_range` picks them for mesh scenes)
+FABRIC_RANGES: dict[str, ParamRange] = {}
+
+
 def _parameter_ranges() -> dict[str, ParamRange]:
     from diffcloth.render.lights import NONNEGATIVE_FIELDS, POSITIVE_FIELDS
 
@@ -106,6 +118,8 @@ def _parameter_ranges() -> dict[str, ParamRange]:
     table.update({name: ParamRange(lo, hi) for name, (lo, hi) in NUISANCE_RANGES.items()})
     table.update({name: ParamRange(0.0, None, False) for name in POSITIVE_FIELDS})
     table.update({name: ParamRange(0.0) for name in NONNEGATIVE_FIELDS})
+    for name in FABRIC_FIELDS:  # mesh-only names; shared ones keep the grid's row here
+        table.setdefault(name, _fabric_range(name))
     table.update(
         body_mass=ParamRange(0.0, None, False, unit="kg"),
         body_restitution=ParamRange(0.0, 1.0),
@@ -117,6 +131,22 @@ def _parameter_ranges() -> dict[str, ParamRange]:
 #: name -> ParamRange: the values `apply_params` accepts (the config sections' ranges). A parameter
 #: not listed only has to be finite. New parameters add a row here.
 PARAMETER_RANGES: dict[str, ParamRange] = _parameter_ranges()
+FABRIC_RANGES.update({name: _fabric_range(name) for name in FABRIC_FIELDS})
+
+
+def _is_mesh(scene) -> bool:
+    from diffcloth.physics.mesh.fabric import Fabric
+
+    return isinstance(getattr(scene, "material", None), Fabric)
+
+
+def param_range(scene, name: str) -> ParamRange:
+    """The allowed values of parameter `name` in `scene`: a mesh cloth's Fabric fields have the
+    ranges of FABRIC_FIELDS (density, shear, damping, friction included), everything else
+    PARAMETER_RANGES."""
+    if _is_mesh(scene) and name in FABRIC_RANGES:
+        return FABRIC_RANGES[name]
+    return PARAMETER_RANGES.get(name, ParamRange())
 
 
 def check_param_values(scene, params: Mapping) -> None:
@@ -141,7 +171,7 @@ def check_param_values(scene, params: Mapping) -> None:
         if isinstance(value, jax.core.Tracer):
             continue
         a = np.asarray(value, np.float64)
-        rng = PARAMETER_RANGES.get(name, ParamRange())
+        rng = param_range(scene, name)
         if not rng.contains(a):
             raise ValueError(
                 f"parameter {name} = {a.tolist()} is out of range; allowed {rng.text()} "
@@ -210,6 +240,19 @@ def param_value(scene, name: str) -> jax.Array:
     if group == "capture":
         return getattr(scene_capture(scene), field)
     target = getattr(scene, group)
+    if group == "material" and not hasattr(target, field):
+        mesh_only = name in FABRIC_FIELDS and name not in MATERIAL_FIELDS
+        if _is_mesh(scene) or mesh_only:
+            kind, other = (
+                ("a mesh cloth's [fabric]", "the grid net's [material]")
+                if _is_mesh(scene)
+                else ("the grid net's [material]", "a mesh cloth's [fabric] ([cloth] shape)")
+            )
+            names = [f.name for f in dataclasses.fields(target)]
+            raise ValueError(
+                f"parameter {name!r} is a parameter of {other}, not of {kind}; this scene's "
+                f"material parameters are: {', '.join(names)}"
+            )
     if not hasattr(target, field):
         raise ValueError(
             f"parameter {name!r} does not exist in this scene's {group} "
@@ -233,9 +276,14 @@ def apply_params(scene, params: Mapping[str, jax.Array] | None):
         groups.setdefault(group, {})[field] = jnp.broadcast_to(
             jnp.asarray(value, old.dtype), old.shape
         )
-    if not any(isinstance(v, jax.core.Tracer) for v in params.values()) and (
-        "material" in groups or "sim" in groups
-    ):  # concrete values: the masses and substep they make, in the scene's dtype
+    concrete = not any(isinstance(v, jax.core.Tracer) for v in params.values())
+    if concrete and _is_mesh(scene) and "material" in groups:  # the fabric's own rules
+        from diffcloth.physics.mesh.fabric import fabric_to_dict, validate_fabric
+
+        merged = fabric_to_dict(dataclasses.replace(scene.material, **groups["material"]))
+        validate_fabric(merged, scene.material.density.dtype)
+    elif concrete and not _is_mesh(scene) and ("material" in groups or "sim" in groups):
+        # concrete values: the masses and substep they make, in the scene's dtype
         names = sorted(n for n in params if PARAMETERS[n][0] in ("material", "sim"))
         check_physics(
             scene.net,

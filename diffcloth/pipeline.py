@@ -3,6 +3,10 @@
     physics.rollout (or coupled_rollout with rigid bodies) -> surface.tessellate
         -> surface.collide_surface -> render.render -> video
 
+A mesh cloth (`scene.cloth_kind(scene) == "mesh"`) takes `physics.mesh.run.mesh_trajectory`
+(dynamic rollout or static equilibrium) and `physics.mesh.cloth_surface` in place of the first
+two; everything after the surface is the same.
+
 `simulate_and_render(scene, params)` returns the video of every camera; `params` is a dict of named
 values that override the scene's own (material, wind, appearance, rigid bodies), so any of them
 can be fitted.
@@ -29,10 +33,11 @@ from diffcloth.parameters import (
     check_nuisance_ranges,
     check_param_names,
     check_param_values,
+    param_range,
     param_value,
     scene_capture,
 )
-from diffcloth.shapes import Sphere
+from diffcloth.shapes import Plane, Sphere
 
 __all__ = [
     "NUISANCE_PARAMETERS",
@@ -76,10 +81,62 @@ def simulate_all(scene, params=None) -> tuple[physics.ClothState, tuple]:
     and the Jacobian fits 256 MB, else in reverse mode; "forward" / "reverse" force one of them.
     Values are the same either way."""
     scene = apply_params(scene, params)
+    if _kind(scene) == "mesh":
+        return mesh_simulate(scene)[0], ()
     run = physics.sensitivity.mixed_mode(
         _physics_fn(scene.num_frames, scene.two_way), scene.sim.gradient
     )
     return run(scene.net, scene.sim, scene.material, scene.state, scene.bodies, scene.colliders)
+
+
+def _kind(scene) -> str:
+    from diffcloth.scene import cloth_kind
+
+    return cloth_kind(scene)
+
+
+def mesh_simulate(scene, params=None):
+    """A mesh cloth scene's run: (trajectory (T, n, 3) leaves, `physics.mesh.run.MeshStatus`).
+    A frame whose solve did not converge is NaN (the status says why: `mesh_failure`)."""
+    from diffcloth.physics.mesh.run import mesh_trajectory
+
+    scene = apply_params(scene, params)
+    return mesh_trajectory(scene.net, scene.sim, scene.material, scene.state, scene.colliders,
+                           num_frames=scene.num_frames)  # fmt: skip
+
+
+def mesh_failure(scene, params=None) -> str | None:
+    """Eager: why a mesh cloth scene's physics gives no shape (e.g. "the equilibrium solve did
+    not converge after 200 Newton iterations ..."), or None."""
+    from diffcloth.physics.mesh.run import status_message
+
+    traj, status = jax.jit(mesh_simulate)(scene, params)
+    msg = status_message(scene.sim, status)
+    if msg is None and not np.all(np.asarray(physics.frames_ok(scene.net, traj, scene.sim,
+                                                              scene.state))):  # fmt: skip
+        msg = "the mesh cloth blew up (non-finite or exploded state)"
+    return msg
+
+
+def cloth_render_surface(scene, x):
+    """The surface to draw of one cloth state: `surface.tessellate` of a control net
+    (rows, cols, 3), or `physics.mesh.cloth_surface` of a mesh cloth's vertices (n, 3) (with the
+    scene's display subdivision)."""
+    if _kind(scene) == "mesh":
+        from diffcloth.physics.mesh.surface import cloth_surface
+
+        return cloth_surface(scene.net, x, display=getattr(scene, "display", None))
+    return surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
+
+
+def drawn_planes(scene):
+    """The plane colliders to draw ([render] draw_planes) as a Plane batch, or None."""
+    if not getattr(scene, "draw_planes", False) or scene.colliders is None:
+        return None
+    if _kind(scene) == "mesh":
+        c = scene.colliders
+        return Plane(c.plane_normal, c.plane_offset) if c.plane_offset.shape[0] else None
+    return split_colliders(scene.colliders)[0]
 
 
 _PHYSICS_FNS = {}
@@ -150,7 +207,7 @@ def render_frame(
     gain multiplies the whole image, background included; the mask is not scaled).
     batch_axes: names of the vmap axes this call runs under (`render_frames` passes FRAME_AXIS)."""
     spheres = scene.spheres if spheres is None else spheres
-    surf = surface.tessellate(x, scene.level, scene.basis, flip=scene.flip)
+    surf = cloth_render_surface(scene, x)
     if getattr(scene, "deform", ()) and time is not None:
         from diffcloth.surface.deform import apply_deformations
 
@@ -158,9 +215,7 @@ def render_frame(
     if spheres is not None:
         surf = surface.collide_surface(surf, spheres, offset=scene.push_out_offset)
     capture = getattr(scene, "capture", None)
-    planes = None
-    if getattr(scene, "draw_planes", False) and scene.colliders is not None:
-        planes = split_colliders(scene.colliders)[0]
+    planes = drawn_planes(scene)
     # shadow maps of this frame, shared by every camera (None when no light casts shadows)
     occluders = None
     if boxes is not None:
@@ -303,7 +358,8 @@ def params_in_range(scene) -> jax.Array:
     """() bool, traceable: every parameter of the scene lies in PARAMETER_RANGES and is finite
     (the traced twin of `check_param_values`: density 0 or stretch -40 passed inside jit)."""
     ok = jnp.asarray(True)
-    for name, rng in PARAMETER_RANGES.items():
+    for name in PARAMETER_RANGES:
+        rng = param_range(scene, name)
         group = PARAMETERS[name][0]
         if group == "bodies" and not scene.bodies:
             continue
@@ -367,6 +423,8 @@ def rendered_times(scene) -> jax.Array:
 def rendered_boxes(scene, bodies=()):
     """Poses of the box bodies at the frames the video shows (as `rendered_states`):
     `render.boxes.BoxPoses` with leaves (T_video, b, ...), or None without boxes."""
+    if _kind(scene) == "mesh":
+        return _static_boxes(scene)
     if not any(b.shape == "box" for b in bodies):
         return None
     k = scene.frame_stride
@@ -377,6 +435,19 @@ def rendered_boxes(scene, bodies=()):
     first = render.boxes.box_poses(scene.bodies)
     idx = np.arange(n) * k
     return jax.tree_util.tree_map(lambda a0, a: jnp.concatenate([a0[None], a])[idx], first, poses)
+
+
+def _static_boxes(scene):
+    """A mesh cloth's box colliders as drawn boxes (`render.boxes.BoxPoses`, leaves
+    (T_video, b, ...)), or None."""
+    c = scene.colliders
+    if c is None or c.box_center.shape[0] == 0:
+        return None
+    n = scene.num_frames // scene.frame_stride
+    # the config's boxes are axis-aligned: identity orientation (w, x, y, z)
+    quat = jnp.zeros((c.box_center.shape[0], 4), c.box_center.dtype).at[:, 0].set(1.0)
+    poses = render.boxes.BoxPoses(position=c.box_center, orientation=quat, half_extents=c.box_half)
+    return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), poses)
 
 
 def first_bad_frame(scene, traj, bodies=()) -> int | None:
@@ -455,6 +526,10 @@ def diagnose(scene, params=None) -> str | None:
         scene = apply_params(scene, params)
     except ValueError as err:
         return f"parameters: {err}"
+    if _kind(scene) == "mesh":
+        why = mesh_failure(scene)
+        if why is not None:
+            return f"physics: {why}"
     traj, bodies = jax.jit(simulate_all)(scene)
     ok = np.asarray(physics.frames_ok(scene.net, traj, scene.sim, scene.state))
     for b in bodies:
@@ -467,9 +542,7 @@ def diagnose(scene, params=None) -> str | None:
             f"({ADVICE})"
         )
     xs, spheres = rendered_states(scene, traj, bodies)
-    surf = jax.jit(
-        jax.vmap(lambda x: surface.tessellate(x, scene.level, scene.basis, flip=scene.flip))
-    )(xs)
+    surf = jax.jit(jax.vmap(lambda x: cloth_render_surface(scene, x)))(xs)
     for field in ("positions", "normals"):
         good = np.isfinite(np.asarray(getattr(surf, field))).reshape(xs.shape[0], -1).all(axis=1)
         if not good.all():

@@ -23,7 +23,9 @@ from diffcloth import render
 from diffcloth.shapes import Sphere
 
 __all__ = [
+    "CLOTH_KINDS",
     "Scene",
+    "cloth_kind",
     "build_bodies",
     "build_scene",
     "check_run_stability",
@@ -62,6 +64,13 @@ class Scene:
       cull: static; object-level frustum culling of the cloth in each camera.
       deform: static tuple of `config.render.DeformConfig` ([[deform]] waves / ripples applied
         to the rendered surface at each frame's time).
+      display: mesh cloth only: the drawn mesh (`physics.mesh.DisplayMesh`, [cloth] subdivide),
+        or None (the simulated mesh is drawn; always None for the grid net).
+
+    The cloth is either the grid net (net: `physics.Net`, material: `physics.Material` or
+    `MassSpring`, sim: `SimSettings`, colliders: `physics.Colliders`) or a triangle-mesh cloth
+    (net: `physics.mesh.ClothMesh`, material: `physics.mesh.Fabric`, sim: `physics.mesh.run.
+    MeshSim`, colliders: `physics.mesh.MeshColliders`); `cloth_kind(scene)` tells which.
     """
 
     net: Any
@@ -92,6 +101,7 @@ class Scene:
     ambient_occlusion: int = dataclasses.field(default=0, metadata={"static": True})
     cull: bool = dataclasses.field(default=False, metadata={"static": True})
     deform: tuple = dataclasses.field(default=(), metadata={"static": True})
+    display: Any = None
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -103,6 +113,19 @@ class Scene:
         """Shape of `simulate_and_render`'s output: (cameras, T, H, W, 3)."""
         h, w = self.image_shape
         return (len(self.cameras), self.num_frames // self.frame_stride, h, w, 3)
+
+
+#: the two cloth representations a Scene holds
+CLOTH_KINDS = ("grid", "mesh")
+
+
+def cloth_kind(scene_or_net) -> str:
+    """ "grid" (control net) or "mesh" (triangle-mesh cloth) of a Scene (or of its `net`): the one
+    place where the pipeline's stages choose their path."""
+    from diffcloth.physics.mesh.topology import ClothMesh
+
+    net = getattr(scene_or_net, "net", scene_or_net)
+    return "mesh" if isinstance(net, ClothMesh) else "grid"
 
 
 RenderConfig = cfg.RenderConfig  # re-exported: the [render] settings live in diffcloth.config
@@ -202,8 +225,8 @@ def check_run_stability(net, sim, material, *, stability: str = "error", label: 
 
     if stability not in STABILITY:
         raise ValueError(f"stability={stability!r}; allowed: {', '.join(STABILITY)}")
-    if sim.integrator != "symplectic":
-        return
+    if sim.integrator != "symplectic" or cloth_kind(net) == "mesh":
+        return  # mesh cloth: no a-priori estimate; a blow-up is caught in the trajectory
     try:
         physics.check_stability(net, sim, material, error=stability == "error")
     except physics.UnstableStepError as err:
@@ -226,7 +249,16 @@ def build_scene(
     rc = config.render
     if overrides:
         rc = dataclasses.replace(rc, **overrides)
-    spheres = phys.colliders.spheres if phys.colliders is not None else None
+    mesh = config.cloth.is_mesh
+    if mesh:  # drawn spheres of a mesh cloth (its colliders are MeshColliders)
+        from diffcloth.shapes import make_sphere
+
+        spheres = None
+        if config.spheres:
+            balls = [make_sphere(sp.center, sp.radius, dtype=dtype) for sp in config.spheres]
+            spheres = jax.tree_util.tree_map(lambda *a: jax.numpy.stack(a), *balls)
+    else:
+        spheres = phys.colliders.spheres if phys.colliders is not None else None
     if spheres is not None and spheres.center.shape[0] == 0:
         spheres = None
     textures = None
@@ -236,7 +268,12 @@ def build_scene(
     _warn_small_bodies(bodies, config)
     cameras = _build_cameras(config, rc, dtype)
     level = rc.level
-    if rc.lod == "auto":
+    display = None
+    if mesh and config.cloth.subdivide:
+        from diffcloth.physics.mesh.surface import display_mesh
+
+        display = display_mesh(phys.net, config.cloth.subdivide)
+    if rc.lod == "auto" and not mesh:
         from diffcloth.surface.lod import auto_level
 
         level = auto_level(phys.state.x, cameras, net_shape=phys.state.x.shape[:2], basis=rc.basis)
@@ -269,6 +306,7 @@ def build_scene(
         cull=rc.cull,
         deform=tuple(config.deform),
         capture=_build_capture(config.cameras, rc, dtype),
+        display=display,
     )
 
 

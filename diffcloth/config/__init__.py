@@ -1,6 +1,7 @@
 """The TOML schema, in one place: one module per pipeline stage, parsed once into typed settings.
 
     physics.py  [net] [material] [sim] [[spheres]] [[planes]]  -> NetConfig, MaterialConfig, ...
+    cloth.py    [cloth] [fabric] [[cylinders]] [[boxes]] [[meshes]] -> ClothConfig, ... (mesh cloth)
     render.py   [render] [[cameras]] [lights] [appearance]     -> RenderConfig, CameraConfig, ...
     bodies.py   [[bodies]] [coupling]                          -> BodiesConfig
     fit.py      [fit] [fit.initial] [truth]                    -> FitSettings
@@ -34,6 +35,18 @@ from diffcloth.config._fields import (
     get_vec3,
 )
 from diffcloth.config.bodies import BodiesConfig, parse_bodies_section
+from diffcloth.config.cloth import (
+    BoxColliderConfig,
+    ClothConfig,
+    CylinderConfig,
+    FabricConfig,
+    MeshColliderConfig,
+    parse_boxes,
+    parse_cloth,
+    parse_cylinders,
+    parse_fabric,
+    parse_meshes,
+)
 from diffcloth.config.fit import FitSettings, check_devices, parse_fit
 from diffcloth.config.physics import (
     MaterialConfig,
@@ -66,6 +79,7 @@ from diffcloth.config.render import (
 __all__ = [
     "BodiesConfig",
     "CameraConfig",
+    "ClothConfig",
     "Config",
     "ConfigError",
     "DirectionalLightConfig",
@@ -101,7 +115,11 @@ SECTIONS = (
     "render", "camera", "cameras", "lights", "appearance", "deform",  # render
     "bodies", "coupling",  # rigid bodies
     "fit", "truth",  # fitting
+    "cloth", "fabric", "cylinders", "boxes", "meshes",  # mesh cloth
 )  # fmt: skip
+#: sections only a mesh cloth reads, and those only the grid reads
+MESH_SECTIONS = ("fabric", "cylinders", "boxes", "meshes")
+GRID_SECTIONS = ("material", "bodies", "coupling")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,6 +144,11 @@ class Config:
     bodies: BodiesConfig = BodiesConfig()
     deform: tuple[DeformConfig, ...] = ()
     fit: FitSettings | None = None
+    cloth: ClothConfig = ClothConfig()
+    fabric: FabricConfig = FabricConfig()
+    cylinders: tuple[CylinderConfig, ...] = ()
+    boxes: tuple[BoxColliderConfig, ...] = ()
+    meshes: tuple[MeshColliderConfig, ...] = ()
     sections: Mapping[str, Any] = dataclasses.field(
         default_factory=lambda: types.MappingProxyType({}), compare=False, hash=False
     )
@@ -135,10 +158,13 @@ class Config:
 def parse_config(data: Mapping[str, Any], path: str | None = None) -> Config:
     """Validate a TOML-like dict into a Config (ConfigError names any bad key or value)."""
     check_keys(data, SECTIONS, "top level")
-    for name in ("net", "material", "sim", "render", "lights", "appearance", "coupling", "fit"):
+    for name in ("net", "material", "sim", "render", "lights", "appearance", "coupling", "fit",
+                 "cloth", "fabric"):  # fmt: skip
         if name in data and not isinstance(data[name], Mapping):
             raise ConfigError(f"[{name}] must be a table, got {data[name]!r}")
     base_dir = Path(path).parent if path else None
+    cloth = parse_cloth(data.get("cloth", {}), base_dir)
+    _check_cloth_sections(data, cloth)
     config = Config(
         net=parse_net(data.get("net", {})),
         material=parse_material(data.get("material", {})),
@@ -152,6 +178,11 @@ def parse_config(data: Mapping[str, Any], path: str | None = None) -> Config:
         bodies=parse_bodies_section(data),
         deform=parse_deform(data),
         fit=parse_fit(data, base_dir) if ("fit" in data or "truth" in data) else None,
+        cloth=cloth,
+        fabric=parse_fabric(data.get("fabric", {}), base_dir),
+        cylinders=parse_cylinders(data),
+        boxes=parse_boxes(data),
+        meshes=parse_meshes(data, base_dir),
         sections=types.MappingProxyType(
             {k: data[k] for k in SECTIONS if k in data and k not in ("net", "material", "sim")}
         ),
@@ -161,8 +192,47 @@ def parse_config(data: Mapping[str, Any], path: str | None = None) -> Config:
     return config
 
 
+def _check_cloth_sections(data: Mapping[str, Any], cloth: ClothConfig) -> None:
+    """The sections and [sim] keys of one cloth kind are refused for the other (named)."""
+    sim = data.get("sim", {}) if isinstance(data.get("sim", {}), Mapping) else {}
+    if not cloth.is_mesh:
+        extra = [f"[{k}]" for k in MESH_SECTIONS if k in data]
+        extra += [f"[sim] {k}" for k in ("mode", "perturb", "solver_iters", "solver_tol")
+                  if k in sim]  # fmt: skip
+        if extra:
+            raise ConfigError(
+                f"{', '.join(extra)} apply to a mesh cloth only; set [cloth] shape = 'disc', "
+                "'rectangle', 'square_grid' or 'obj' (the grid net reads [net] and [material])"
+            )
+        return
+    extra = [f"[{k}]" for k in GRID_SECTIONS if k in data]
+    if "net" in data and cloth.shape != "square_grid":
+        extra.append("[net]")
+    if extra:
+        raise ConfigError(
+            f"{', '.join(extra)} do(es) not apply to [cloth] shape = {cloth.shape!r}: a mesh "
+            "cloth reads its material from [fabric] and its shape from [cloth] (rigid bodies "
+            "need the grid net)"
+        )
+    grid_only = [k for k in ("friction_rule", "newton_iters", "cg_iters", "cg_tol", "gradient")
+                 if k in sim]  # fmt: skip
+    if grid_only:
+        raise ConfigError(
+            f"[sim] {', '.join(grid_only)} apply to the grid net only; a mesh cloth's solver "
+            "reads [sim] solver_iters and solver_tol"
+        )
+
+
 def _check_across_sections(config: Config) -> None:
     """Rules that tie two sections together."""
+    if config.cloth.is_mesh and config.sim.mode == "equilibrium":
+        rc = config.render
+        if rc.frame_stride != 1 or rc.first_frame != 1:
+            raise ConfigError(
+                "[render] frame_stride and first_frame must be 1 with [sim] mode = "
+                "'equilibrium' (the video is the one rest shape)"
+            )
+        return
     stride, frames = config.render.frame_stride, config.sim.num_frames
     if stride > frames:
         raise ConfigError(
@@ -212,6 +282,7 @@ def load_config(path) -> Config:
 
 def schema() -> dict[str, tuple[str, ...]]:
     """{section: allowed keys} of every section (array-of-table entries by their entry name)."""
+    from diffcloth.physics.mesh.fabric import FABRIC_FIELDS
     from diffcloth.physics.rigid import BODY_KEYS
     from diffcloth.render import appearance_fields
 
@@ -232,4 +303,9 @@ def schema() -> dict[str, tuple[str, ...]]:
         "coupling": ("two_way",),
         "deform": dataclass_keys(DeformConfig),
         "fit": fit_keys,
+        "cloth": dataclass_keys(ClothConfig),
+        "fabric": ("preset", "bend", "stretch", *FABRIC_FIELDS),
+        "cylinders": dataclass_keys(CylinderConfig),
+        "boxes": dataclass_keys(BoxColliderConfig),
+        "meshes": dataclass_keys(MeshColliderConfig),
     }

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
 from collections.abc import Mapping
 from typing import Any
 
@@ -98,6 +99,11 @@ class SimConfig:
     cg_iters: int = 200
     cg_tol: float = 1e-5
     gradient: str = "reverse"
+    # mesh cloth only ([cloth] shape other than "grid")
+    mode: str = "dynamic"
+    perturb: Mapping[str, Any] | None = None
+    solver_iters: int | None = None
+    solver_tol: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -222,6 +228,30 @@ def parse_sim(t: Mapping[str, Any]) -> SimConfig:
             t, "cg_tol", d.cg_tol, where=w, lo=0, hi=1, lo_inclusive=False, hi_inclusive=False
         ),
         gradient=get_choice(t, "gradient", d.gradient, GRADIENT_MODES, where=w),
+        mode=get_choice(t, "mode", d.mode, ("dynamic", "equilibrium"), where=w),
+        perturb=_parse_perturb(t.get("perturb")),
+        solver_iters=get_number(t, "solver_iters", None, where=w, lo=1, integer=True),
+        solver_tol=get_number(
+            t, "solver_tol", None, where=w, lo=0, hi=1, lo_inclusive=False, hi_inclusive=False
+        ),
+    )
+
+
+def _parse_perturb(p) -> Mapping[str, Any] | None:
+    """[sim] perturb = {mode = k, amplitude = m, seed = s}: a fold-seeding bump of the mesh
+    cloth's start state (`physics.mesh.run.perturbed_start`)."""
+    if p is None:
+        return None
+    w = "sim.perturb"
+    if not isinstance(p, Mapping):
+        raise ConfigError(f"[sim] perturb = {p!r} must be a table {{mode, amplitude, seed}}")
+    check_keys(p, ("mode", "amplitude", "seed"), w)
+    return types.MappingProxyType(
+        {
+            "mode": get_number(p, "mode", where=w, lo=1, hi=64, integer=True),
+            "amplitude": get_number(p, "amplitude", where=w, lo=0, hi=1),
+            "seed": get_number(p, "seed", 0, where=w, lo=0, integer=True),
+        }
     )
 
 
@@ -277,6 +307,11 @@ def build_physics(config, dtype=None) -> PhysicsScene:
     from diffcloth import physics
     from diffcloth.config.dtype import check_config_dtype, check_physics_dtype
     from diffcloth.shapes import make_plane, make_sphere
+
+    if config.cloth.is_mesh:  # triangle-mesh cloth ([cloth] shape)
+        from diffcloth.config.cloth import build_mesh_physics
+
+        return build_mesh_physics(config, dtype)
 
     check_config_dtype(config, dtype)  # every value in the run's dtype, naming the key
     n, s = config.net, config.sim
