@@ -22,6 +22,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from diffcloth.physics.mesh import colliders as mc
 from diffcloth.physics.mesh import energy, hessian, linsolve
@@ -255,46 +256,61 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
                              energy=e)  # fmt: skip
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _argmin(problem: _Problem, theta, x0):
     return _newton(problem, theta, x0)
 
 
-def _argmin_fwd(problem, theta, x0):
+def _root(problem, x, theta):
+    """f(x, theta) = [free: grad E(x); pinned: x - x_pins], zero at the solution."""
+    fmask = theta["free"][:, None]
+    g = jax.grad(lambda y: _energy(problem, y, theta))(x)
+    return jnp.where(fmask, g, x - theta["x_pins"])
+
+
+@_argmin.defjvp
+def _argmin_jvp(problem, primals, tangents):
+    """Implicit function theorem: df/dx xdot = -df/dtheta thetadot, with df/dx = diag(H_ff, I)
+    (symmetric). The solve is a `lax.custom_linear_solve`, so reverse mode transposes it (the
+    same solve, as the matrix is symmetric): forward and reverse mode both work, and neither
+    passes back through the Newton iterations. x0 has no effect on the solution (zero tangent).
+    """
+    theta, x0 = primals
+    theta_dot, _ = tangents
     out = _newton(problem, theta, x0)
-    return out, (out.x, theta, x0)
-
-
-def _argmin_bwd(problem, res, ct):
-    """Implicit function theorem: f(x, theta) = [free: grad E(x); pinned: x - x_pins] = 0, so
-    theta_bar = -(df/dtheta)^T lam with (df/dx) lam = x_bar, df/dx = diag(H_ff, I)."""
-    x, theta, x0 = res
-    xbar = ct.x
+    x = out.x
     free = theta["free"]
     fmask = free[:, None]
+    rhs = jax.jvp(lambda th: _root(problem, x, th), (theta,), (theta_dot,))[1]
     grad_fn = jax.grad(lambda y: _energy(problem, y, theta))
-    hvp = lambda p: jax.jvp(grad_fn, (x,), (p,))[1]
+    matvec = lambda p: jnp.where(fmask, jax.jvp(grad_fn, (x,), (p * fmask,))[1], p)
     hmat = _hessian(problem, x, theta)
     if problem.settings.linear_solver == "direct":  # the approximate Hessian's LU preconditions
         nbr = cloth_of(theta).neighbors
         token = linsolve.factor(linsolve.pin_rows(hmat, nbr, free), nbr)
-        pre = lambda r: linsolve.solve(token, r) * fmask
+        pre = lambda r: jnp.where(fmask, linsolve.solve(token, r), r)
     else:
-        pre = _block_jacobi(hessian.block_diagonal(hmat), free)
-    lam, _, _ = _cg(lambda p: hvp(p * fmask) * fmask, xbar * fmask, pre,
-                    4 * problem.settings.cg_iters, 1e-9)  # fmt: skip
-    lam = jnp.where(fmask, lam, xbar)
+        block = _block_jacobi(hessian.block_diagonal(hmat), free)
+        pre = lambda r: jnp.where(fmask, block(r), r)
 
-    def f(th):
-        g = jax.grad(lambda y: _energy(problem, y, th))(x)
-        return jnp.where(fmask, g, x - th["x_pins"])
+    def solve(mv, b):
+        z, _, _ = _cg(mv, b, pre, 4 * problem.settings.cg_iters, 1e-10)
+        return z
 
-    _, vjp = jax.vjp(f, theta)
-    (tbar,) = vjp(-lam)
-    return tbar, jnp.zeros_like(x0)
-
-
-_argmin.defvjp(_argmin_fwd, _argmin_bwd)
+    x_dot = jax.lax.custom_linear_solve(matvec, -rhs, solve, symmetric=True)
+    zero = lambda a: (
+        jnp.zeros_like(a)
+        if jnp.issubdtype(a.dtype, jnp.inexact)
+        else np.zeros(a.shape, jax.dtypes.float0)
+    )
+    out_dot = EquilibriumResult(
+        x=x_dot,
+        converged=zero(out.converged),
+        iterations=zero(out.iterations),
+        residual=zero(out.residual),
+        energy=zero(out.energy),
+    )
+    return out, out_dot
 
 
 def equilibrium(
