@@ -130,11 +130,24 @@ def _check_view_args(args) -> None:
     if args.overlay and args.export is None:
         raise UsageError("--overlay applies to --export (a recording); add --export FILE.html")
     if args.export is not None:
+        from diffcloth.outdir import config_inputs
         from diffcloth.runtime import unwritable_folder
 
         path = Path(args.export)
         if path.is_dir():
             raise UsageError(f"--export {str(path)!r} is a folder; give a file, e.g. view.html")
+        src = Path(args.path)
+        inputs = config_inputs(src) if src.is_file() else [("the result folder", src)]
+        for label, inp in inputs:  # never write over an input of the run
+            try:
+                full = path.resolve()
+                same = path.exists() and (full == inp.resolve() or inp.resolve() in full.parents)
+            except OSError:
+                same = False
+            if same:
+                raise UsageError(
+                    f"--export {str(path)!r} is an input of this run ({label}); choose another file"
+                )
         parent = path.parent
         while not parent.exists() and parent != parent.parent:
             parent = parent.parent  # the folder export_html would create the file under

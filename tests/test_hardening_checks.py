@@ -184,6 +184,29 @@ def test_view_export_that_cannot_be_written_is_refused_before_simulating(
     assert no_view.calls == [] and "simulating" not in out
 
 
+@pytest.mark.parametrize("which", ["config", "symlink_to_config", "target_image"])
+def test_view_export_onto_an_input_of_the_run_is_refused(tmp_path, capsys, no_view, which):
+    """--export never writes over the config or a file the config names (it would be lost)."""
+    cfg = write(tmp_path, TINY)
+    before = Path(cfg).read_bytes()
+    if which == "config":
+        path = Path(cfg)
+    elif which == "symlink_to_config":
+        path = tmp_path / "link.html"
+        path.symlink_to(cfg)
+    else:
+        img = tmp_path / "target.png"
+        img.write_bytes(b"not really a png")
+        text = Path(cfg).read_text() + '\n[textures]\nimage = "target.png"\n'
+        Path(cfg).write_text(text)
+        before = Path(cfg).read_bytes()
+        path = img
+    code, out, err = run(["view", cfg, "--no-cache", "--export", str(path)], capsys)
+    assert code == 2 and "input of this run" in err, err
+    assert no_view.calls == [] and "simulating" not in out
+    assert Path(cfg).read_bytes() == before
+
+
 def test_view_port_zero_means_any_free_port(tmp_path, capsys, no_view):
     """0 passes the check (viser then picks a free port); the recorder stands in for the rest."""
     from diffcloth.cli import _check_view_args, build_parser
