@@ -64,18 +64,32 @@ def check_config(
 
 
 def _config_x64(paths) -> bool:
-    """True when a fit config asks for float64 ([fit] x64 = true): the CLI turns JAX's x64 on
-    before any work, as --x64 does. A config that does not load is left to the real checks."""
+    """True when a fit config asks for float64 ([fit] x64 = true), or a config is a mesh cloth
+    (`_mesh_x64`): the CLI turns JAX's x64 on before any work, as --x64 does. A config that
+    does not load is left to the real checks."""
     from diffcloth.config import load_config
 
     for path in paths:
         try:
-            fit = load_config(path).fit
+            config = load_config(path)
         except (ValueError, OSError):
             continue
-        if fit is not None and fit.x64:
+        if (config.fit is not None and config.fit.x64) or config.cloth.is_mesh:
             return True
     return False
+
+
+def _mesh_x64(path) -> bool:
+    """True for a mesh cloth config ([cloth] shape other than "grid"): the CLI runs it in float64,
+    as --x64 does. Its Newton solves need it: in float32 the rounding of the membrane forces of a
+    stiff fabric (hundreds of N/m) is a few percent of a vertex's weight, so an equilibrium
+    stalls above any useful tolerance (the Cusick config: 5 % in float32, converged in float64)."""
+    from diffcloth.config import load_config
+
+    try:
+        return load_config(path).cloth.is_mesh
+    except (ValueError, OSError):
+        return False
 
 
 def _err(msg: str) -> None:
@@ -98,7 +112,7 @@ def _check_positive(name: str, value, lo: int = 1) -> None:
 def _simulate(args) -> int:
     import jax
 
-    if args.x64:
+    if args.x64 or _mesh_x64(args.config):
         jax.config.update("jax_enable_x64", True)
     import numpy as np
 
@@ -113,6 +127,8 @@ def _simulate(args) -> int:
     _check_positive("--chunk", args.chunk)
     _check_positive("--level", args.level, 2)
     config = load_config(args.config)
+    if config.cloth.is_mesh:
+        return _simulate_mesh(args, config)
     num_frames = config.sim.num_frames if args.frames is None else args.frames
     memory.check_memory(
         memory.estimate_memory(
@@ -210,6 +226,69 @@ def _simulate(args) -> int:
     return 0
 
 
+def _simulate_mesh(args, config) -> int:
+    """`diffcloth simulate` of a mesh cloth ([cloth] shape): the dynamic rollout (--frames
+    overrides num_frames) or the equilibrium (one frame); trajectory.npz holds x, v (T, n, 3),
+    rest, pinned, faces, uv and dt; --obj writes the drawn mesh of every frame."""
+    import jax
+    import numpy as np
+
+    from diffcloth import pipeline
+    from diffcloth.outdir import OutputDir, config_inputs
+    from diffcloth.physics.mesh.run import status_message
+    from diffcloth.scene import build_scene
+
+    if args.frames is not None and config.sim.mode == "dynamic":
+        import dataclasses
+
+        config = dataclasses.replace(
+            config, sim=dataclasses.replace(config.sim, num_frames=args.frames)
+        )
+    scene = build_scene(config, stability=_stability(args))
+    net, sim = scene.net, scene.sim
+    out = OutputDir(args.out, overwrite=args.overwrite, inputs=config_inputs(args.config))
+    print(
+        f"diffcloth simulate {args.config}: mesh cloth ({config.cloth.shape}) of "
+        f"{net.num_vertices} vertices, {net.num_faces} faces, {sim.mode}"
+        + (f", {scene.num_frames} frames, {sim.num_substeps} substeps/frame, {sim.integrator}"
+           if sim.mode == "dynamic" else ""),
+        flush=True,
+    )  # fmt: skip
+    t0 = time.perf_counter()
+    traj, status = jax.jit(pipeline.mesh_simulate)(scene)
+    why = status_message(sim, status)
+    if why is None and pipeline.first_bad_frame(scene, traj) is not None:
+        why = f"the cloth blew up at frame {pipeline.first_bad_frame(scene, traj)}"
+    if why is not None:
+        out.discard()
+        _err(f"{'not converged' if sim.mode == 'equilibrium' else 'unstable'}: {why}; "
+             "nothing written")  # fmt: skip
+        return 1
+    x, v = np.asarray(traj.x), np.asarray(traj.v)
+    print(f"  solved in {time.perf_counter() - t0:.1f} s", flush=True)
+    np.savez(
+        out.tmp / "trajectory.npz",
+        x=x,
+        v=v,
+        rest=np.asarray(net.rest),
+        pinned=np.asarray(net.pinned),
+        faces=np.asarray(net.faces),
+        uv=np.asarray(net.uv),
+        dt=float(np.asarray(sim.dt)),
+        iterations=np.asarray(status.iterations),
+    )
+    if args.obj:
+        from diffcloth.io import write_obj_sequence
+
+        surfaces = jax.jit(jax.vmap(lambda xf: pipeline.cloth_render_surface(scene, xf)))(x)
+        paths = write_obj_sequence(out.tmp / "obj", surfaces)
+    dest = out.commit()
+    print(f"wrote {dest / 'trajectory.npz'}: x {x.shape} ({time.perf_counter() - t0:.1f} s)")
+    if args.obj:
+        print(f"wrote {len(paths)} OBJ files to {dest / 'obj'}")
+    return 0
+
+
 def _force_host_devices(n: int) -> None:
     """Let JAX's CPU backend expose `n` devices (no effect on GPUs), unless XLA_FLAGS already sets it.
 
@@ -239,7 +318,7 @@ def _pad_frames(tree, sl, pad: int):
 def _render(args) -> int:
     import jax
 
-    if args.x64:
+    if args.x64 or _mesh_x64(args.config):
         jax.config.update("jax_enable_x64", True)
     import numpy as np
 
@@ -298,6 +377,10 @@ def _render(args) -> int:
     bad = pipeline.first_bad_frame(scene, traj, bodies)
     if bad is not None:
         out.discard()
+        if pipeline.cloth_kind(scene) == "mesh":  # the solver's own reason
+            why = pipeline.mesh_failure(scene) or f"non-finite state at frame {bad}"
+            _err(f"the mesh cloth gives no shape: {why}; nothing written")
+            return 1
         _err(f"unstable: the simulation blew up (non-finite or exploded state) at frame {bad}; "
              f"{ADVICE}")  # fmt: skip
         return 1

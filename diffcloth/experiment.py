@@ -180,6 +180,15 @@ def _check_stable_values(sc, settings, stability: str) -> None:
         )
 
 
+def _cloth_text(sc) -> str:
+    """ "net 10x13" (grid) or "mesh cloth of 725 vertices (equilibrium)" for reports."""
+    from diffcloth.scene import cloth_kind
+
+    if cloth_kind(sc) == "mesh":
+        return f"mesh cloth of {sc.net.num_vertices} vertices ({sc.sim.mode})"
+    return f"net {sc.net.rows}x{sc.net.cols}"
+
+
 def _fmt_params(params: Mapping) -> str:
     return ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in params.items())
 
@@ -487,7 +496,7 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
         sections["Non-finite stop"] = f"{result.message}. Stage check: {diagnosis}."
     sections["Method"] = _method_section(result, settings)
     sections["Scene"] = (
-        f"net {sc.net.rows}x{sc.net.cols}, {sc.num_frames} frames "
+        f"{_cloth_text(sc)}, {sc.num_frames} frames "
         f"({sc.sim.num_substeps} substeps, {sc.sim.integrator}), {len(sc.cameras)} camera(s) "
         f"{sc.image_shape[1]}x{sc.image_shape[0]}, tessellation level {sc.level}, "
         f"shading {sc.shading}, loss {settings.loss}, target noise {settings.noise}; "

@@ -89,10 +89,14 @@ def simulate_all(scene, params=None) -> tuple[physics.ClothState, tuple]:
     return run(scene.net, scene.sim, scene.material, scene.state, scene.bodies, scene.colliders)
 
 
-def _kind(scene) -> str:
-    from diffcloth.scene import cloth_kind
+def cloth_kind(scene) -> str:
+    """ "grid" or "mesh" (see `diffcloth.scene.cloth_kind`)."""
+    from diffcloth.scene import cloth_kind as kind
 
-    return cloth_kind(scene)
+    return kind(scene)
+
+
+_kind = cloth_kind
 
 
 def mesh_simulate(scene, params=None):

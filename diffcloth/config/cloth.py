@@ -178,8 +178,8 @@ def parse_cloth(t: Mapping[str, Any], base_dir: Path | None = None) -> ClothConf
         return ClothConfig(**kw)
     kw["pinned"] = _pinned(t, w)
     if "pin_radius" in t:
-        if shape != "disc":
-            raise ConfigError("[cloth] pin_radius applies to shape = 'disc' only")
+        if shape not in ("disc", "rectangle"):
+            raise ConfigError("[cloth] pin_radius applies to shape = 'disc' or 'rectangle' only")
         kw["pin_radius"] = get_number(t, "pin_radius", where=w, lo=0, lo_inclusive=False)
         if "pinned" in t:
             raise ConfigError("[cloth] give pinned or pin_radius, not both")
@@ -451,7 +451,7 @@ def build_mesh_physics(config, dtype=None):
         p = s.perturb
         x = jnp.asarray(perturbed_start(cloth, cloth.rest, mode=p["mode"],
                                         amplitude=p["amplitude"], seed=p["seed"]), x.dtype)  # fmt: skip
-    v = jnp.zeros_like(x) + jnp.asarray(config.net.velocity, x.dtype)
+    v = jnp.zeros_like(x) + jnp.asarray(config.net.velocity, x.dtype)[None, :]
     num_frames = 1 if s.mode == "equilibrium" else s.num_frames
     return PhysicsScene(cloth, sim, fabric, ClothState(x=x, v=v),
                         build_mesh_colliders(config, dtype), num_frames)  # fmt: skip

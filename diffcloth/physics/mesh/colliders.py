@@ -155,13 +155,13 @@ def make_mesh_colliders(
 
 
 def _box_sdf(x, center, half, rot):
-    q = jnp.abs((x - center) @ rot) - half
+    q = jnp.abs((x - center[None, :]) @ rot) - half[None, :]
     outside = safe_norm(jnp.maximum(q, 0.0))
     return outside + jnp.minimum(jnp.max(q, axis=-1), 0.0)
 
 
 def _cylinder_sdf(x, top, radius, height):
-    rel = x - top
+    rel = x - top[None, :]
     rho = safe_norm(rel[..., jnp.array([0, 2])]) - radius
     dy = jnp.abs(rel[..., 1] + 0.5 * height) - 0.5 * height
     d = jnp.stack([rho, dy], axis=-1)

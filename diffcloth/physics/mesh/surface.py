@@ -247,8 +247,8 @@ def cloth_surface(
     # a vertex whose warp tangent vanishes (degenerate faces) falls back to any orthogonal axis
     axis = jnp.where(
         (jnp.abs(normals[:, 0]) < 0.9)[:, None],
-        jnp.asarray([1.0, 0.0, 0.0], x.dtype),
-        jnp.asarray([0.0, 0.0, 1.0], x.dtype),
+        jnp.asarray([1.0, 0.0, 0.0], x.dtype)[None, :],
+        jnp.asarray([0.0, 0.0, 1.0], x.dtype)[None, :],
     )
     fallback = axis - jnp.sum(axis * normals, -1, keepdims=True) * normals
     small = jnp.sum(t * t, axis=-1, keepdims=True) <= 1e-24
