@@ -45,7 +45,7 @@ def _membrane_blocks(cloth: ClothMesh, fabric, x):
     w, v = jnp.linalg.eigh(s2)
     s_plus = jnp.einsum("mik,mk,mjk->mij", v, jnp.maximum(w, 0.0), v)
     g = jnp.einsum("mai,mij,mbj->mab", b, s_plus, b)  # (m, 3, 3)
-    geo = g[:, :, :, None, None] * jnp.eye(3, dtype=x.dtype)
+    geo = g[:, :, :, None, None] * jnp.eye(3, dtype=x.dtype)[None, None, None, :, :]
     return cloth.face_area[:, None, None, None, None] * (gn + geo)
 
 
