@@ -141,8 +141,8 @@ def rms_over_size(a, b, size) -> float:
 
 @pytest.fixture(autouse=True)
 def _x64():
-    # rank promotion allowed: hessian._membrane_blocks broadcasts (m, 3, 3, 1, 1) against (3, 3)
-    # (reported to the solver's owner; remove once it is explicit)
+    # rank promotion allowed: solve._newton adds (n, 1, 1) * (3, 3) (solve.py, `mu * mass` times
+    # the identity; hessian.py's was fixed in 46f1bdc); remove once that is explicit too
     with jax.enable_x64(True), jax.numpy_rank_promotion("allow"):
         yield
 
