@@ -132,7 +132,7 @@ def _block_jacobi(diag_blocks, free):
     """Preconditioner r -> D^-1 r from (n, 3, 3) diagonal blocks (identity where singular)."""
     eye = jnp.eye(3, dtype=diag_blocks.dtype)
     scale = jnp.maximum(jnp.trace(diag_blocks, axis1=1, axis2=2), 1e-30)[:, None, None]
-    inv = jnp.linalg.inv(diag_blocks / scale + 1e-10 * eye) / scale
+    inv = jnp.linalg.inv(diag_blocks / scale + 1e-10 * eye[None]) / scale
     inv = jnp.where(free[:, None, None], inv, 0.0)
     return lambda r: jnp.einsum("nab,nb->na", inv, r)
 
@@ -169,7 +169,7 @@ def _energy(problem: _Problem, x, theta):
         bregman = (energy.elastic_energy(cloth, fabric, x) - theta["el_prev"]
                    - jnp.sum(theta["g_prev"] * (x - x_n)))  # fmt: skip
         e = e + fabric.damping / h * bregman
-        rel = (x - x_n) - h * theta["wind"]
+        rel = (x - x_n) - h * theta["wind"][None, :]
         e = e + 0.5 * fabric.drag / h * jnp.sum(cloth.vertex_area[:, None] * rel * rel)
         if problem.colliders:
             e = e + _friction_energy(cols, x, x_n, cloth.vertex_area, theta["free"],
@@ -194,7 +194,9 @@ def _hessian(problem: _Problem, x, theta):
     if problem.kind == "implicit":
         h = theta["h"]
         mass = energy.vertex_mass(cloth, fabric)
-        diag = diag + (mass / (h * h) + fabric.drag * cloth.vertex_area / h)[:, None, None] * eye
+        diag = (
+            diag + (mass / (h * h) + fabric.drag * cloth.vertex_area / h)[:, None, None] * eye[None]
+        )
         scale = 1.0 + fabric.damping / h
     return hessian.assemble(cloth, fabric, x, elastic_scale=scale, diag=diag)
 
@@ -224,7 +226,7 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     def body(c):
         x, e, g, mu, k, res = c
         hmat = _hessian(problem, x, theta)
-        hmat = hmat.at[:, 0].add((mu * mass)[:, None, None] * eye)
+        hmat = hmat.at[:, 0].add((mu * mass)[:, None, None] * eye[None])
         apply_a = lambda p: hessian.matvec(cloth, hmat, p * fmask) * fmask
         if st.linear_solver == "direct":
             # Newton-Krylov: CG on the exact Hessian (+ mu M), preconditioned by the LU of the
@@ -455,7 +457,9 @@ def symplectic_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None,
     kv = jax.jvp(jax.grad(lambda y: energy.elastic_energy(cloth, fabric, y)), (state.x,),
                  (state.v,))[1]  # fmt: skip
     force = (
-        force - fabric.damping * kv - fabric.drag * cloth.vertex_area[:, None] * (state.v - wind)
+        force
+        - fabric.damping * kv
+        - fabric.drag * cloth.vertex_area[:, None] * (state.v - wind[None, :])
     )
     v = state.v + h * force / jnp.maximum(mass, 1e-30)[:, None]
     v = jnp.where(free[:, None], v, state.v)
