@@ -37,6 +37,7 @@ from diffcloth.parameters import (
     param_value,
     scene_capture,
 )
+from diffcloth.scene import cloth_kind
 from diffcloth.shapes import Plane, Sphere
 
 __all__ = [
@@ -89,14 +90,7 @@ def simulate_all(scene, params=None) -> tuple[physics.ClothState, tuple]:
     return run(scene.net, scene.sim, scene.material, scene.state, scene.bodies, scene.colliders)
 
 
-def cloth_kind(scene) -> str:
-    """ "grid" or "mesh" (see `diffcloth.scene.cloth_kind`)."""
-    from diffcloth.scene import cloth_kind as kind
-
-    return kind(scene)
-
-
-_kind = cloth_kind
+_kind = cloth_kind  # "grid" or "mesh" (diffcloth.scene.cloth_kind)
 
 
 def mesh_simulate(scene, params=None):
@@ -107,19 +101,6 @@ def mesh_simulate(scene, params=None):
     scene = apply_params(scene, params)
     return mesh_trajectory(scene.net, scene.sim, scene.material, scene.state, scene.colliders,
                            num_frames=scene.num_frames)  # fmt: skip
-
-
-def mesh_failure(scene, params=None) -> str | None:
-    """Eager: why a mesh cloth scene's physics gives no shape (e.g. "the equilibrium solve did
-    not converge after 200 Newton iterations ..."), or None."""
-    from diffcloth.physics.mesh.run import status_message
-
-    traj, status = jax.jit(mesh_simulate)(scene, params)
-    msg = status_message(scene.sim, status)
-    if msg is None and not np.all(np.asarray(physics.frames_ok(scene.net, traj, scene.sim,
-                                                              scene.state))):  # fmt: skip
-        msg = "the mesh cloth blew up (non-finite or exploded state)"
-    return msg
 
 
 def cloth_render_surface(scene, x):
@@ -513,55 +494,5 @@ def simulate_and_render_checked(scene, params=None, *, with_mask: bool = False):
     return _nan_unless(ok, out), ok
 
 
-def diagnose(scene, params=None) -> str | None:
-    """Run the pipeline stage by stage and name the first stage whose output is not finite.
-
-    Each stage (physics, surface, render) is jitted on its own and checked eagerly, frame by
-    frame, so a NaN in a fit can be traced to where it starts (the fit loop itself only sees a
-    non-finite loss). Returns None when every stage is finite, else a message such as
-    "physics: non-finite cloth state from frame 7 of 15 (...)".
-    """
-    from diffcloth.physics.rollout import ADVICE
-
-    for name, value in (params or {}).items():
-        if not np.all(np.isfinite(np.asarray(value))):
-            return f"parameters: {name} = {np.asarray(value).tolist()} is not finite"
-    try:
-        scene = apply_params(scene, params)
-    except ValueError as err:
-        return f"parameters: {err}"
-    if _kind(scene) == "mesh":
-        why = mesh_failure(scene)
-        if why is not None:
-            return f"physics: {why}"
-    traj, bodies = jax.jit(simulate_all)(scene)
-    ok = np.asarray(physics.frames_ok(scene.net, traj, scene.sim, scene.state))
-    for b in bodies:
-        ok &= np.isfinite(np.asarray(b.position)).all(axis=1)
-    if not ok.all():
-        first = int(np.argmin(ok))
-        return (
-            f"physics: non-finite or blown-up cloth or body state from frame {first} of "
-            f"{scene.num_frames} "
-            f"({ADVICE})"
-        )
-    xs, spheres = rendered_states(scene, traj, bodies)
-    surf = jax.jit(jax.vmap(lambda x: cloth_render_surface(scene, x)))(xs)
-    for field in ("positions", "normals"):
-        good = np.isfinite(np.asarray(getattr(surf, field))).reshape(xs.shape[0], -1).all(axis=1)
-        if not good.all():
-            return (
-                f"surface: non-finite {field} in rendered frame {int(np.argmin(good))} "
-                "(degenerate control net?)"
-            )
-    boxes = rendered_boxes(scene, bodies)
-    video = np.asarray(
-        jax.jit(lambda sc, x, sp, bx, t: render_frames(sc, x, sp, boxes=bx, times=t))(
-            scene, xs, spheres, boxes, rendered_times(scene) if scene.deform else None
-        )
-    )
-    good = np.isfinite(video).reshape(video.shape[0], video.shape[1], -1).all(axis=2)
-    if not good.all():
-        cam, frame = np.unravel_index(int(np.argmin(good)), good.shape)
-        return f"render: non-finite pixels in camera {cam}, rendered frame {frame}"
-    return None
+# stage-by-stage checks live in diffcloth.diagnose (imported last: it uses the names above)
+from diffcloth.diagnose import diagnose, mesh_failure  # noqa: E402

@@ -386,7 +386,7 @@ def build_cloth_mesh(config, dtype=None):
 def build_mesh_colliders(config, dtype=None):
     """MeshColliders of [[planes]], [[spheres]], [[cylinders]], [[boxes]], [[meshes]], or None."""
     from diffcloth.physics.mesh import make_mesh_colliders
-    from diffcloth.physics.mesh.builders import _parse_obj
+    from diffcloth.physics.mesh.objfile import parse_obj
 
     if not (config.planes or config.spheres or config.cylinders or config.boxes or config.meshes):
         return None
@@ -395,7 +395,7 @@ def build_mesh_colliders(config, dtype=None):
     tri = []
     for i, m in enumerate(config.meshes):
         try:
-            pos, _, faces, _ = _parse_obj(Path(m.path))
+            pos, _, faces, _ = parse_obj(Path(m.path))
             if len(faces) == 0 or faces.min() < 0 or faces.max() >= len(pos):
                 raise ValueError("needs faces whose vertex indices name existing vertices")
             pos = np.asarray(pos, float) * m.scale + np.asarray(m.offset)

@@ -240,7 +240,9 @@ def signed_distance(colliders: MeshColliders, x):
 
 
 def has_colliders(colliders) -> bool:
-    """True if any collider is present (static: from shapes)."""
+    """True if any collider is present (static: from shapes).
+    Shapes: none (decided from the arrays' static shapes).
+    """
     if colliders is None:
         return False
     c = colliders

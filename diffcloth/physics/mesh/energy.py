@@ -105,7 +105,9 @@ def bending_matrix(fabric: Fabric):
 
 def bending_energy(cloth: ClothMesh, fabric: Fabric, x):
     """Directional bending energy in J: sum_f A_f / 2 (B_warp k_uu^2 + B_weft k_vv^2 +
-    4 B_66 k_uv^2), B_66 = bend_bias - (bend_warp + bend_weft) / 4."""
+    4 B_66 k_uv^2), B_66 = bend_bias - (bend_warp + bend_weft) / 4.
+    Shapes: x (n, 3) m -> () J.
+    """
     k = curvatures(cloth, x)
     b66 = fabric.bend_bias - 0.25 * (fabric.bend_warp + fabric.bend_weft)
     psi = 0.5 * (fabric.bend_warp * k[:, 0] ** 2 + fabric.bend_weft * k[:, 1] ** 2
@@ -135,5 +137,7 @@ def gravity_energy(cloth: ClothMesh, fabric: Fabric, x, gravity):
 
 
 def elastic_energy(cloth: ClothMesh, fabric: Fabric, x):
-    """Membrane plus bending energy in J."""
+    """Membrane plus bending energy in J.
+    Shapes: x (n, 3) m -> () J.
+    """
     return membrane_energy(cloth, fabric, x) + bending_energy(cloth, fabric, x)

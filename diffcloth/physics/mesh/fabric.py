@@ -164,13 +164,17 @@ def _presets() -> dict[str, dict]:
 
 
 def fabric_presets() -> tuple[str, ...]:
-    """Names of the fabric presets (see docs/fabrics.md for their sources)."""
+    """Names of the fabric presets (see docs/fabrics.md for their sources).
+    Shapes: none.
+    """
     return tuple(sorted(_presets()))
 
 
 def fabric_preset(name: str) -> dict[str, float]:
     """The Fabric fields of a preset (a dict; unset fields keep the defaults). Also accepts a
-    path to a TOML file holding a [fabric] table (a fitted fabric written by the drape test)."""
+    path to a TOML file holding a [fabric] table (a fitted fabric written by the drape test).
+    Shapes: none.
+    """
     presets = _presets()
     if name in presets:
         entry = presets[name]
@@ -188,10 +192,14 @@ def fabric_preset(name: str) -> dict[str, float]:
 
 def bending_length(bend, density, g: float = 9.81):
     """Peirce's cantilever bending length c = (B / (rho g))^(1/3), m, of a rigidity B (N m) and an
-    areal density rho (kg/m^2); FAST: B [uN m] = 9.81e-6 W [g/m^2] c [mm]^3."""
+    areal density rho (kg/m^2); FAST: B [uN m] = 9.81e-6 W [g/m^2] c [mm]^3.
+    Shapes: bend and density broadcast (...) -> c (...).
+    """
     return (jnp.asarray(bend) / (jnp.asarray(density) * g)) ** (1.0 / 3.0)
 
 
 def fabric_to_dict(fabric: Fabric) -> dict[str, float]:
-    """Plain floats of every field (for reports and preset files)."""
+    """Plain floats of every field (for reports and preset files).
+    Shapes: none.
+    """
     return {k: float(getattr(fabric, k)) for k in FABRIC_FIELDS}

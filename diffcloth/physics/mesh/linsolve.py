@@ -97,3 +97,44 @@ def pin_rows(h, neighbors, free):
 def direct_solve(h, neighbors, rhs):
     """Solve H z = rhs once (H: (n, K, 3, 3) block rows with `neighbors`; rhs (n, 3))."""
     return solve(factor(h, neighbors), rhs)
+
+
+def _cg(apply_a, b, precond, iters: int, rtol: float):
+    """Preconditioned conjugate gradients for A z = b (A symmetric), stopping at a relative
+    residual rtol, after `iters`, or at a direction of non-positive curvature (then ok is
+    False unless some progress was made). Returns (z, ok, iterations)."""
+    bnorm = jnp.sqrt(jnp.vdot(b, b))
+
+    def cond(c):
+        z, r, p, rz, k, ok, done = c
+        return (~done) & (k < iters)
+
+    def body(c):
+        z, r, p, rz, k, ok, done = c
+        ap = apply_a(p)
+        pap = jnp.vdot(p, ap)
+        neg = pap <= 0
+        alpha = rz / jnp.where(neg, 1.0, pap)
+        z_new = jnp.where(neg, z, z + alpha * p)
+        r_new = jnp.where(neg, r, r - alpha * ap)
+        s = precond(r_new)
+        rz_new = jnp.vdot(r_new, s)
+        beta = rz_new / jnp.where(rz == 0, 1.0, rz)
+        p_new = s + beta * p
+        conv = jnp.sqrt(jnp.vdot(r_new, r_new)) <= rtol * bnorm
+        ok_new = jnp.where(neg, k > 0, ok)
+        return z_new, r_new, p_new, rz_new, k + 1, ok_new, done | neg | conv
+
+    s0 = precond(b)
+    init = (jnp.zeros_like(b), b, s0, jnp.vdot(b, s0), 0, jnp.array(True), bnorm == 0)
+    z, _, _, _, k, ok, _ = jax.lax.while_loop(cond, body, init)
+    return z, ok, k
+
+
+def _block_jacobi(diag_blocks, free):
+    """Preconditioner r -> D^-1 r from (n, 3, 3) diagonal blocks (identity where singular)."""
+    eye = jnp.eye(3, dtype=diag_blocks.dtype)
+    scale = jnp.maximum(jnp.trace(diag_blocks, axis1=1, axis2=2), 1e-30)[:, None, None]
+    inv = jnp.linalg.inv(diag_blocks / scale + 1e-10 * eye[None]) / scale
+    inv = jnp.where(free[:, None, None], inv, 0.0)
+    return lambda r: jnp.einsum("nab,nb->na", inv, r)

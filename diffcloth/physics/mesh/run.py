@@ -170,7 +170,9 @@ def mesh_trajectory(
 
 
 def status_message(sim: MeshSim, status: MeshStatus) -> str | None:
-    """Eager: why a mesh run is not a shape (None when every frame converged)."""
+    """Eager: why a mesh run is not a shape (None when every frame converged).
+    Shapes: none.
+    """
     ok = np.asarray(status.converged)
     if ok.all():
         return None

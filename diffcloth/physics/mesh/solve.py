@@ -27,6 +27,7 @@ import numpy as np
 from diffcloth.physics.mesh import colliders as mc
 from diffcloth.physics.mesh import energy, hessian, linsolve
 from diffcloth.physics.mesh.fabric import Fabric
+from diffcloth.physics.mesh.linsolve import _block_jacobi, _cg
 from diffcloth.physics.mesh.topology import ClothMesh
 from diffcloth.physics.state import ClothState
 
@@ -96,47 +97,6 @@ def potential(cloth: ClothMesh, fabric: Fabric, x, gravity, colliders=None):
     return e
 
 
-def _cg(apply_a, b, precond, iters: int, rtol: float):
-    """Preconditioned conjugate gradients for A z = b (A symmetric), stopping at a relative
-    residual rtol, after `iters`, or at a direction of non-positive curvature (then ok is
-    False unless some progress was made). Returns (z, ok, iterations)."""
-    bnorm = jnp.sqrt(jnp.vdot(b, b))
-
-    def cond(c):
-        z, r, p, rz, k, ok, done = c
-        return (~done) & (k < iters)
-
-    def body(c):
-        z, r, p, rz, k, ok, done = c
-        ap = apply_a(p)
-        pap = jnp.vdot(p, ap)
-        neg = pap <= 0
-        alpha = rz / jnp.where(neg, 1.0, pap)
-        z_new = jnp.where(neg, z, z + alpha * p)
-        r_new = jnp.where(neg, r, r - alpha * ap)
-        s = precond(r_new)
-        rz_new = jnp.vdot(r_new, s)
-        beta = rz_new / jnp.where(rz == 0, 1.0, rz)
-        p_new = s + beta * p
-        conv = jnp.sqrt(jnp.vdot(r_new, r_new)) <= rtol * bnorm
-        ok_new = jnp.where(neg, k > 0, ok)
-        return z_new, r_new, p_new, rz_new, k + 1, ok_new, done | neg | conv
-
-    s0 = precond(b)
-    init = (jnp.zeros_like(b), b, s0, jnp.vdot(b, s0), 0, jnp.array(True), bnorm == 0)
-    z, _, _, _, k, ok, _ = jax.lax.while_loop(cond, body, init)
-    return z, ok, k
-
-
-def _block_jacobi(diag_blocks, free):
-    """Preconditioner r -> D^-1 r from (n, 3, 3) diagonal blocks (identity where singular)."""
-    eye = jnp.eye(3, dtype=diag_blocks.dtype)
-    scale = jnp.maximum(jnp.trace(diag_blocks, axis1=1, axis2=2), 1e-30)[:, None, None]
-    inv = jnp.linalg.inv(diag_blocks / scale + 1e-10 * eye[None]) / scale
-    inv = jnp.where(free[:, None, None], inv, 0.0)
-    return lambda r: jnp.einsum("nab,nb->na", inv, r)
-
-
 class _Problem(NamedTuple):
     """Static description of a minimisation (hashable): its kind and solver settings."""
 
@@ -146,7 +106,7 @@ class _Problem(NamedTuple):
     colliders: bool
 
 
-def cloth_of(theta) -> ClothMesh:
+def _cloth_of(theta) -> ClothMesh:
     return theta["cloth"]
 
 
@@ -302,7 +262,7 @@ def _argmin_jvp(problem, primals, tangents):
     matvec = lambda p: jnp.where(fmask, jax.jvp(grad_fn, (x,), (p * fmask,))[1], p)
     hmat = _hessian(problem, x, theta)
     if problem.settings.linear_solver == "direct":  # the approximate Hessian's LU preconditions
-        nbr = cloth_of(theta).neighbors
+        nbr = _cloth_of(theta).neighbors
         token = linsolve.factor(linsolve.pin_rows(hmat, nbr, free), nbr)
         pre = lambda r: jnp.where(fmask, linsolve.solve(token, r), r)
     else:
@@ -367,7 +327,9 @@ def equilibrium(
 
 
 def check_equilibrium(result: EquilibriumResult, what: str = "equilibrium") -> EquilibriumResult:
-    """Raise NotConvergedError (with the reason) unless the solve converged; returns result."""
+    """Raise NotConvergedError (with the reason) unless the solve converged; returns result.
+    Shapes: none (reads the result's scalars).
+    """
     if not bool(jnp.all(jnp.isfinite(result.x))):
         raise NotConvergedError(f"{what}: the solve produced non-finite positions")
     if not bool(result.converged):
@@ -418,7 +380,9 @@ def implicit_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None, co
     """One implicit (backward) Euler step of length h (s): minimises the incremental potential
     (module docstring) by Newton; differentiable by the implicit function theorem. Pinned
     vertices keep their state. Non-convergence shows as non-finite positions (NaN), which the
-    rollout's checks report."""
+    rollout's checks report.
+    Shapes: state leaves (n, 3) m and m/s -> ClothState with (n, 3) leaves; h () s.
+    """
     x_n, v_n = state.x, state.v
     dtype = x_n.dtype
     theta = {
@@ -448,7 +412,9 @@ def implicit_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None, co
 def symplectic_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None,
                     colliders=None) -> ClothState:  # fmt: skip
     """One symplectic (semi-implicit) Euler step of length h (s); stable for h below about
-    sqrt(m / k) of the stiffest element (small steps only)."""
+    sqrt(m / k) of the stiffest element (small steps only).
+    Shapes: state leaves (n, 3) m and m/s -> ClothState with (n, 3) leaves; h () s.
+    """
     free = ~cloth.pinned
     mass = energy.vertex_mass(cloth, fabric)
     wind = jnp.zeros(3, state.x.dtype) if wind is None else wind
