@@ -89,9 +89,10 @@ def common(dtype: str, n: int) -> dict:
 # ------------------------------------------------------------------------------------ scenes
 
 
-def drape_scene(dtype):
-    """(cloth, fabric, x_start, colliders) of the Cusick drape benchmark."""
-    mesh = pm.disc(R, EDGE, rings_at=(PEDESTAL,))
+def drape_scene(dtype, edge=EDGE):
+    """(cloth, fabric, x_start, colliders) of the Cusick drape benchmark (edge: target edge
+    length of the disc, m)."""
+    mesh = pm.disc(R, edge, rings_at=(PEDESTAL,))
     r = np.hypot(mesh.vertices[:, 0], mesh.vertices[:, 2])
     cloth = pm.make_cloth(mesh, pinned=r <= PEDESTAL + 1e-9, dtype=dtype)
     fabric = pm.make_fabric(PRESET, dtype=dtype)
@@ -133,8 +134,8 @@ def hanging_scene(dtype, edge):
 # ------------------------------------------------------------------------------------- cases
 
 
-def bench_drape(dtype, repeats, out, max_iters=None):
-    cloth, fabric, x0, cols, r = drape_scene(dtype)
+def bench_drape(dtype, repeats, out, max_iters=None, edge=EDGE):
+    cloth, fabric, x0, cols, r = drape_scene(dtype, edge)
     g = jnp.asarray(GRAVITY, dtype)
     st = pm.SolverSettings() if max_iters is None else pm.SolverSettings(max_iters=max_iters)
     solve = jax.jit(lambda f: pm.equilibrium(cloth, f, x0, gravity=g, colliders=cols,
@@ -209,6 +210,9 @@ def main(argv=None):
         help="cap the drape's Newton iterations (default:"
         " SolverSettings' 200); a capped solve reports converged false",
     )
+    parser.add_argument("--edge", type=float, default=EDGE,
+                        help=f"the drape disc's edge length, m (default {EDGE}: about 2,800 vertices; "
+                        "0.011: about 700)")  # fmt: skip
     parser.add_argument("--out", help="append the JSON lines to this file")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
@@ -220,7 +224,7 @@ def main(argv=None):
     for dt in dtypes:
         dtype = jnp.dtype(dt)
         if "drape" in cases:
-            bench_drape(dtype, repeats, out, args.max_iters)
+            bench_drape(dtype, repeats, out, args.max_iters, args.edge)
         if "step" in cases:
             bench_step(dtype, repeats, out)
     if out:
