@@ -5,7 +5,8 @@ Newton iteration in block-row ("ELL") form: block (i, k) couples vertex i with v
 - Membrane: Gauss-Newton J^T C J of the Green strain plus the geometric stiffness of the
   stress's tensile part (the compressive part is dropped, which keeps each face's block PSD:
   a compressed membrane buckles, it does not push back).
-- Bending: Gauss-Newton A J^T P^T D P J of the face curvatures (J: the stencil's hinge angles).
+- Bending: Gauss-Newton A J^T P^T D P J of the face curvatures (J: the stencil's hinge angles),
+  and of the curvature jump across each hinge (its two faces' stencils: 12 x 12 blocks).
 - Contact: k_c A_i grad(phi) grad(phi)^T on vertices in the contact layer.
 The Newton solves use it as the system matrix (with the exact gradient), and the implicit
 gradient's exact Hessian-vector solve uses its diagonal blocks as a preconditioner.
@@ -51,7 +52,8 @@ def _membrane_blocks(cloth: ClothMesh, fabric, x):
 
 
 def _bending_blocks(cloth: ClothMesh, fabric, x):
-    """(m, 6, 6, 3, 3) per-face Gauss-Newton blocks of the bending energy."""
+    """Gauss-Newton blocks of the bending energy: (m, 6, 6, 3, 3) per face stencil and
+    (h, 12, 12, 3, 3) per hinge (the jump term, over its two faces' stencils)."""
     p = x[cloth.stencil]  # (m, 6, 3)
     interior = cloth.face_hinge >= 0
     jt = jax.vmap(jax.jacfwd(energy._stencil_theta), in_axes=(0, 0, 0))(
@@ -59,17 +61,25 @@ def _bending_blocks(cloth: ClothMesh, fabric, x):
     )  # (m, 3, 6, 3)
     jk = jnp.einsum("mkh,mhaj->mkaj", cloth.curvature_op, jt)  # (m, 3, 6, 3)
     d = energy.bending_matrix(fabric)
-    return cloth.face_area[:, None, None, None, None] * jnp.einsum("mkai,kl,mlbj->mabij", jk, d, jk)
+    face = jnp.einsum("mkai,kl,mlbj->mabij", jk, d, jk)
+    face = cloth.face_area[:, None, None, None, None] * face
+    hf = cloth.hinge_faces
+    jump = jnp.concatenate([jk[hf[:, 0]], -jk[hf[:, 1]]], axis=2)  # (h, 3, 12, 3)
+    w = 0.5 * energy.JUMP_PENALTY * (cloth.face_area[hf[:, 0]] + cloth.face_area[hf[:, 1]])
+    hinge = w[:, None, None, None, None] * jnp.einsum("hkai,kl,hlbj->habij", jump, d, jump)
+    return face, hinge
 
 
 def assemble(cloth: ClothMesh, fabric, x, *, elastic_scale=1.0, diag=None):
     """The (n, K, 3, 3) block-row PSD Hessian approximation of the elastic energy at x (n, 3),
     scaled by elastic_scale, plus optional per-vertex (n, 3, 3) diagonal blocks `diag`."""
-    blocks = _bending_blocks(cloth, fabric, x)
+    blocks, hinge = _bending_blocks(cloth, fabric, x)
     blocks = blocks.at[:, :3, :3].add(_membrane_blocks(cloth, fabric, x))
     n, k = cloth.neighbors.shape
     flat = jax.ops.segment_sum(
-        blocks.reshape(-1, 3, 3), cloth.stencil_slots.reshape(-1), num_segments=n * k
+        jnp.concatenate([blocks.reshape(-1, 3, 3), hinge.reshape(-1, 3, 3)]),
+        jnp.concatenate([cloth.stencil_slots.reshape(-1), cloth.hinge_slots.reshape(-1)]),
+        num_segments=n * k,
     ).reshape(n, k, 3, 3)
     flat = flat * elastic_scale
     if diag is not None:

@@ -44,9 +44,14 @@ class ClothMesh:
         neighbour's third vertex o_k (f_k itself on the boundary): every vertex the face's
         bending energy depends on.
       face_rest_angle: (m, 3) rest dihedral angle across edge k (0 on the boundary), rad.
-      neighbors: (n, K) int32, the vertices sharing a stencil with each vertex (itself first;
-        padded with itself): the columns of the sparse Hessian's block rows.
+      hinge_faces: (h, 2) int32, the two faces of each hinge, in face order (the bending
+        model's curvature-jump term couples their curvature tensors).
+      neighbors: (n, K) int32, the vertices sharing a face stencil or a hinge's pair of face
+        stencils with each vertex (itself first; padded with itself): the columns of the sparse
+        Hessian's block rows.
       stencil_slots: (m, 6, 6) int32, the flat (n K) slot of each stencil block (a, b).
+      hinge_slots: (h, 12, 12) int32, the flat (n K) slot of each block (a, b) of a hinge's
+        two stencils side by side ([stencil of face 0, stencil of face 1]).
     """
 
     rest: jax.Array
@@ -63,8 +68,10 @@ class ClothMesh:
     pinned: jax.Array
     stencil: jax.Array
     face_rest_angle: jax.Array
+    hinge_faces: jax.Array
     neighbors: jax.Array
     stencil_slots: jax.Array
+    hinge_slots: jax.Array
 
     @property
     def num_vertices(self) -> int:
@@ -172,28 +179,45 @@ def _stencil(faces: np.ndarray, face_hinge: np.ndarray, hinges: np.ndarray) -> n
     return st
 
 
-def _sparsity(stencil: np.ndarray, n: int):
-    """Block-row sparsity of the Hessian: (n, K) neighbours (self first, padded with self) and
-    the (m, 6, 6) flat slot of each stencil pair."""
-    m = stencil.shape[0]
-    rows = np.repeat(stencil, 6, axis=1).reshape(-1)
-    cols = np.tile(stencil, (1, 6)).reshape(-1)
-    pairs = np.unique(np.concatenate([rows * n + cols, np.arange(n) * (n + 1)]))
+def _hinge_faces(face_hinge: np.ndarray, num_hinges: int) -> np.ndarray:
+    """(h, 2): the two faces of each hinge, in face order."""
+    out = -np.ones((num_hinges, 2), np.int64)
+    f, k = np.nonzero(face_hinge >= 0)
+    h = face_hinge[f, k]
+    order = np.lexsort((f, h))  # per hinge, its two faces in face order
+    h, f = h[order], f[order]
+    out[h[0::2], 0], out[h[1::2], 1] = f[0::2], f[1::2]
+    return out
+
+
+def _pair_keys(groups: np.ndarray, n: int) -> np.ndarray:
+    """groups (g, s) vertex indices -> (g, s, s) int64 keys row * n + col of all pairs."""
+    return groups[:, :, None].astype(np.int64) * n + groups[:, None, :]
+
+
+def _sparsity(stencil: np.ndarray, hinge_stencil: np.ndarray, n: int):
+    """Block-row sparsity of the Hessian: (n, K) neighbours (self first, padded with self), the
+    (m, 6, 6) flat slot of each face-stencil pair and the (h, 12, 12) flat slot of each pair of a
+    hinge's two stencils."""
+    face_keys = _pair_keys(stencil, n)
+    hinge_keys = _pair_keys(hinge_stencil, n)
+    pairs = np.unique(np.concatenate([face_keys.ravel(), hinge_keys.ravel(),
+                                      np.arange(n, dtype=np.int64) * (n + 1)]))  # fmt: skip
     r, c = pairs // n, pairs % n
     counts = np.bincount(r, minlength=n)
     k = int(counts.max())
     nbr = np.repeat(np.arange(n)[:, None], k, axis=1)
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
     # self first: order each row's columns with the diagonal leading
-    key = r * (n + 1) + np.where(c == r, 0, c + 1)
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(r * (n + 1) + np.where(c == r, 0, c + 1), kind="stable")
     r, c = r[order], c[order]
     pos = np.arange(len(r)) - start[r]
     nbr[r, pos] = c
     flat = r * k + pos
-    table = dict(zip((r * n + c).tolist(), flat.tolist(), strict=True))
-    slots = np.array([table[v] for v in (rows * n + cols).tolist()], np.int64).reshape(m, 6, 6)
-    return nbr, slots
+    sorted_keys = r * n + c  # the pairs in slot order; look keys up by sorting them
+    lookup = np.argsort(sorted_keys, kind="stable")
+    slot_of = lambda keys: flat[lookup[np.searchsorted(sorted_keys[lookup], keys)]]
+    return nbr, slot_of(face_keys), slot_of(hinge_keys)
 
 
 def pin_mask(rule, vertices: np.ndarray, boundary: np.ndarray | None = None) -> np.ndarray:
@@ -292,7 +316,9 @@ def make_cloth(mesh, *, pinned=None, warp_angle: float = 0.0, dtype=None) -> Clo
     np.add.at(vertex_area, faces.reshape(-1), np.repeat(face_area / 3.0, 3))
     mask = pin_mask(pinned, verts, boundary_vertices(faces, verts.shape[0]))
     stencil = _stencil(faces, face_hinge, hinges)
-    nbr, slots = _sparsity(stencil, verts.shape[0])
+    hinge_faces = _hinge_faces(face_hinge, len(hinges))
+    hinge_stencil = stencil[hinge_faces].reshape(-1, 12)
+    nbr, slots, hinge_slots = _sparsity(stencil, hinge_stencil, verts.shape[0])
     rest_angle = _dihedral_np(verts, hinges) if len(hinges) else np.zeros(0)
     face_rest = np.where(face_hinge >= 0, rest_angle[np.maximum(face_hinge, 0)] if len(hinges)
                          else 0.0, 0.0)  # fmt: skip
@@ -314,6 +340,8 @@ def make_cloth(mesh, *, pinned=None, warp_angle: float = 0.0, dtype=None) -> Clo
         pinned=jnp.asarray(mask),
         stencil=idx(stencil),
         face_rest_angle=arr(face_rest),
+        hinge_faces=idx(hinge_faces),
         neighbors=idx(nbr),
         stencil_slots=idx(slots),
+        hinge_slots=idx(hinge_slots),
     )
