@@ -1,4 +1,5 @@
-"""Command line: `diffcloth simulate | fit CONFIG --out DIR` (also `python -m diffcloth`)."""
+"""Command line: `diffcloth simulate | render | fit CONFIG --out DIR`, `diffcloth drape fit |
+predict | suite` (also `python -m diffcloth`)."""
 
 # ruff: noqa: F401  (re-exports: names moved to sibling modules stay importable here)
 from __future__ import annotations
@@ -355,6 +356,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--size", type=int, default=256, help="image size of the render panel")
     v.add_argument("--paused", action="store_true", help="start paused at the last frame")
     v.set_defaults(func=_view)
+    from diffcloth.drape.cli import add_drape_parser
+
+    add_drape_parser(sub, [cache])
     return parser
 
 
