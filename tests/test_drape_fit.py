@@ -190,3 +190,33 @@ def test_cli_fit_recovers_the_bending_of_a_synthetic_drape(tmp_path):
     assert res["observations"][0]["iou"] > 0.9
     assert math.isfinite(res["fit"]["std"]["bend"])
     jax.clear_caches()
+
+
+def test_a_scan_in_centimetres_is_set_aside_naming_the_file(tmp_path):
+    """A 3D scan of a drape written in cm instead of m: reported, not fitted; a good scan in m
+    becomes an observation (its top-view DC)."""
+    from diffcloth.drape.observe import measure_observations
+    from diffcloth.physics.mesh import disc
+
+    mesh = disc(0.15, 0.008, rings_at=(0.09,))
+    v = mesh.vertices.copy()
+    r = np.hypot(v[:, 0], v[:, 2])
+    out = np.clip(r - 0.09, 0, None)
+    scale = np.where(r > 0, (np.minimum(r, 0.09) + out * 0.6) / np.maximum(r, 1e-12), 1.0)
+    v[:, 0] *= scale
+    v[:, 2] *= scale
+    v[:, 1] -= out * 0.8  # a cone: the hanging part turned down
+    faces = "\n".join(f"f {a + 1} {b + 1} {c + 1}" for a, b, c in mesh.faces)
+    for name, s in (("good.obj", 1.0), ("cm.obj", 100.0)):
+        verts = "\n".join(f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in v * s)
+        (tmp_path / name).write_text(verts + "\n" + faces + "\n")
+    body = GOOD + '[[scans]]\nfile = "good.obj"\n[[scans]]\nfile = "cm.obj"\n'
+    cfg = load_drape_config(_config(tmp_path, body))
+    said = []
+    obs = measure_observations(cfg, log=said.append)
+    assert [m.obs.path.name for m in obs.accepted] == ["a.png", "good.obj"]
+    assert [o.path.name for o, _ in obs.rejected] == ["cm.obj"]
+    assert any("cm.obj" in s and "cm" in s.replace("cm.obj", "") for s in said), said
+    dc_scan = obs.accepted[1].features["dc"]
+    expected = ((0.09 + 0.06 * 0.6) ** 2 - 0.09**2) / (0.15**2 - 0.09**2)
+    assert abs(dc_scan - expected) < 0.03

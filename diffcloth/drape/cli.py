@@ -95,7 +95,7 @@ def _fit(args) -> int:
     if fit.note:
         print(f"note: {fit.note}", flush=True)
     seeds = range(args.seeds or cfg.predict_seeds)
-    preds = predict_drapes(model, values, seeds, amplitude=cfg.amplitude)
+    preds = predict_drapes(model, values, seeds)
     rows = compare(observed, preds)
     write_outputs(out.tmp, cfg, observed, preds, rows, fabric_values=values, fit=fit,
                   truth=_truth_beside(cfg))  # fmt: skip
@@ -116,8 +116,7 @@ def _predict(args) -> int:
         values.update(fabric_preset(args.fabric))
     values["density"] = cfg.density if "density" not in values else values["density"]
     model = make_drape_model(cfg.geometry, edge=cfg.edge)
-    preds = predict_drapes(model, values, range(args.seeds or cfg.predict_seeds),
-                           amplitude=cfg.amplitude)  # fmt: skip
+    preds = predict_drapes(model, values, range(args.seeds or cfg.predict_seeds))
     rows = compare(observed, preds)
     write_outputs(out.tmp, cfg, observed, preds, rows, fabric_values=values,
                   truth=_truth_beside(cfg))  # fmt: skip

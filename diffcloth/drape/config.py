@@ -206,7 +206,7 @@ def load_drape_config(path) -> DrapeConfig:
         seeds=_number(src, "[fit] seeds", fit.get("seeds", 3), 1, 64, integer=True),
         steps=_number(src, "[fit] steps", fit.get("steps", 12), 1, 200, integer=True),
         edge=_number(src, "[fit] edge", fit.get("edge", DEFAULT_EDGE), 1e-3, hang / 4),
-        amplitude=_number(src, "[fit] amplitude", fit.get("amplitude", 2e-3), 0.0, 0.02),
+        amplitude=_number(src, "[fit] amplitude", fit.get("amplitude", 5e-3), 0.0, 0.02),
         predict_seeds=_number(src, "[predict] seeds", pred.get("seeds", 8), 1, 256, integer=True),
     )
 

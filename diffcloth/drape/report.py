@@ -57,12 +57,17 @@ def compare(observed, predictions: list[dict]) -> list[dict]:
         best = max(((align_rotation(r_obs, p["r_theta"]), p) for p in predictions),
                    key=lambda t: t[0][2])  # fmt: skip
         (angle, mirrored, iou), p = best
+        chamfer = None
+        if m.points is not None:  # a 3D scan: the surface distance after the best turn
+            from diffcloth.drape.scan import align_scan_rotation
+
+            chamfer = float(align_scan_rotation(m.points, p["x"])[1])
         rows.append({
             "file": m.obs.path.name, "sample": m.obs.sample, "side": m.obs.side,
             "dc": float(m.features["dc"]), "node_count": int(m.features["node_count"]),
             "dc_predicted": float(dcs.mean()), "dc_predicted_std": float(dcs.std()),
             "iou": float(iou), "iou_seed": p["seed"], "rotation_deg": math.degrees(angle),
-            "mirrored": bool(mirrored),
+            "mirrored": bool(mirrored), "chamfer_m": chamfer,
             "_overlay": rotate_outline(p["r_theta"], angle, mirrored), "_sil": m.sil,
         })  # fmt: skip
     return rows
@@ -112,10 +117,12 @@ def write_outputs(folder, cfg, observed, predictions, rows, *, fabric_values, fi
     import imageio.v3 as iio
 
     for row in rows:
-        img = overlay_image(row.pop("_sil"), predicted_r_theta=row.pop("_overlay"),
-                            geometry=cfg.geometry)  # fmt: skip
-        row["overlay"] = f"overlays/{Path(row['file']).stem}.png"
-        iio.imwrite(folder / row["overlay"], img)
+        sil, r_pred = row.pop("_sil"), row.pop("_overlay")
+        row["overlay"] = None
+        if sil is not None:
+            row["overlay"] = f"overlays/{Path(row['file']).stem}.png"
+            iio.imwrite(folder / row["overlay"],
+                        overlay_image(sil, predicted_r_theta=r_pred, geometry=cfg.geometry))  # fmt: skip
     fitted = fit.values if fit else {}
     (folder / "fabric.toml").write_text(
         _fabric_toml(cfg.name, fabric_values, fitted, fit.std if fit else {})
@@ -194,7 +201,9 @@ def _markdown(cfg, observed, predictions, rows, fit, truth, obs_nodes, pred_node
         md.append(f"| {r['file']} | {r['sample']} | {r['side']} | {r['dc']:.4f} | "
                   f"{r['dc_predicted']:.4f} +- {r['dc_predicted_std']:.4f} | {r['node_count']} | "
                   f"{r['iou']:.3f} (seed {r['iou_seed']}, {r['rotation_deg']:.0f} deg"
-                  f"{', mirrored' if r['mirrored'] else ''}) | ![]({r['overlay']}) |")  # fmt: skip
+                  f"{', mirrored' if r['mirrored'] else ''}) | "
+                  + (f"![]({r['overlay']}) |" if r["overlay"] else
+                     f"3D scan: chamfer {1e3 * r['chamfer_m']:.1f} mm |"))  # fmt: skip
     for o, reasons in observed.rejected:
         md.append(f"| {o.path.name} | {o.sample} | {o.side} | set aside: {'; '.join(reasons)} "
                   "| | | | |")  # fmt: skip
