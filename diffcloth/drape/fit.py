@@ -250,8 +250,8 @@ def fit_drape(cfg: DrapeConfig, observed: ObservedSet, model: DrapeModel, *, log
         while budget > 0:
             jtj = jac.T @ jac
             g = jac.T @ r
-            if np.max(np.abs(g)) < 1e-8 * max(1.0, cost) or cost < 1e-8:
-                converged = True  # a stationary point: nothing left to gain
+            if cost < 1e-4:  # every residual within about 1 % of the tester's error
+                converged = True
                 break
             budget -= 1
             delta = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -g)
@@ -274,8 +274,10 @@ def fit_drape(cfg: DrapeConfig, observed: ObservedSet, model: DrapeModel, *, log
                     break
             else:
                 lam *= 8
-                if lam > 1e6:
-                    converged = bool(np.max(np.abs(g)) < 1e-2)
+                if lam > 1e6:  # no step lowers the loss: converged if Gauss-Newton's own step
+                    # is below 0.2 % (the rest is the solver's tolerance)
+                    gn = np.linalg.lstsq(jtj, -g, rcond=None)[0]
+                    converged = bool(np.max(np.abs(gn)) < 2e-3)
                     break
         if np.max(np.abs(q - q_round)) < 0.01 or budget <= 0:
             break
