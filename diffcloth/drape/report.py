@@ -22,7 +22,13 @@ import numpy as np
 from diffcloth.drape.images import overlay_image
 from diffcloth.drape.model import DrapeModel, imperfect_start
 from diffcloth.drape.outline import align_rotation, rotate_outline
-from diffcloth.physics.mesh import FABRIC_FIELDS, bending_length, make_fabric, measure
+from diffcloth.physics.mesh import (
+    FABRIC_FIELDS,
+    bending_length,
+    fabric_to_dict,
+    make_fabric,
+    measure,
+)
 
 __all__ = ["compare", "predict_drapes", "write_outputs"]
 
@@ -114,6 +120,9 @@ def write_outputs(folder, cfg, observed, predictions, rows, *, fabric_values, fi
     synthetic drape (the suite's truth.json), shown beside the prediction."""
     folder = Path(folder)
     (folder / "overlays").mkdir(parents=True, exist_ok=True)
+    # every Fabric field: the given values over the defaults
+    fabric_values = {k: float(v) for k, v in fabric_to_dict(make_fabric(
+        None, dtype=jnp.float64, validate=False, **fabric_values)).items()}  # fmt: skip
     import imageio.v3 as iio
 
     for row in rows:
