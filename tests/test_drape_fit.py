@@ -142,9 +142,12 @@ def test_cli_sets_aside_a_misscaled_image_and_refuses_when_none_is_left(tmp_path
 
 
 @pytest.mark.slow
-def test_feature_jacobian_matches_central_differences(model):
+def test_feature_jacobian_matches_central_differences():
     """d(DC, c2)/d(log bend) through the equilibrium (implicit function theorem) against central
-    differences of warm-started solves (same fold branch), float64."""
+    differences of warm-started solves (same fold branch), float64, solved to a force residual of
+    1e-8 of the vertex weights (at the fit's 1e-3 the differences are noise-limited: c2 to
+    about 20 %)."""
+    model = make_drape_model(CUSICK, edge=0.015, tol=1e-8, max_iters=800)
     from diffcloth.drape.config import DrapeConfig
     from diffcloth.drape.fit import _evaluator
 
@@ -156,14 +159,14 @@ def test_feature_jacobian_matches_central_differences(model):
     q = jnp.log(jnp.array([3e-5, 1e-5]))
     f, jac, (x, conv, _) = ev(q, jnp.asarray(imperfect_start(model, 1, mode=6)))
     assert bool(conv)
-    h = 1e-3
+    h = 1e-2
     for i in range(2):
         dq = jnp.zeros(2).at[i].set(h)
         fp, _, (_, cp, _) = ev(q + dq, x)
         fm, _, (_, cm, _) = ev(q - dq, x)
         assert bool(cp) and bool(cm)
         fd = (np.asarray(fp) - np.asarray(fm)) / (2 * h)
-        np.testing.assert_allclose(np.asarray(jac)[:, i], fd, rtol=2e-3, atol=2e-5)
+        np.testing.assert_allclose(np.asarray(jac)[:, i], fd, rtol=5e-3, atol=5e-5)
 
 
 @pytest.mark.slow
