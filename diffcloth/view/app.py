@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import viser
 
-from diffcloth.view.model import SLIDERS, ViewModel, slider_range
+from diffcloth.view.model import ViewModel, slider_range
 
 __all__ = ["Viewer", "export_html", "free_port"]
 
@@ -64,7 +64,8 @@ def _lights(server: viser.ViserServer) -> None:
 
 
 class _Scene3D:
-    """The scene nodes of one model: cloth, target cloth, spheres, planes, bodies."""
+    """The scene nodes of one model: cloth, target cloth, spheres, planes, bodies, and a mesh
+    cloth's static boxes, capped cylinders and triangle-mesh colliders."""
 
     def __init__(self, server: viser.ViserServer, model: ViewModel):
         self.server, self.model = server, model
@@ -115,6 +116,16 @@ class _Scene3D:
                     h = s.add_box(name, dimensions=tuple(2 * b["half_extents"]),
                                   color=model.sphere_color, **NO_SHADOW)  # fmt: skip
                 self.bodies[root].append(h)
+            for i, b in enumerate(model.boxes()):
+                s.add_box(
+                    f"{root}boxes/{i}", dimensions=tuple(2 * SPHERE_SHRINK * b["half_extents"]),
+                    color=model.sphere_color, position=b["center"], wxyz=b["wxyz"], **NO_SHADOW,
+                )  # fmt: skip
+            for i, (kind, v, faces) in enumerate(model.collider_meshes()):
+                s.add_mesh_simple(
+                    f"{root}colliders/{i}_{kind}", v, faces, color=model.sphere_color,
+                    side="double", **NO_SHADOW,
+                )  # fmt: skip
         self.show(0)
 
     def show(self, t: int) -> None:
@@ -202,16 +213,17 @@ class Viewer:
     # ---- GUI ----------------------------------------------------------------------------------
     def _build_gui(self, autoplay: bool, fps: float) -> None:
         m, gui = self.model, self.server.gui
-        net = m.scene.net.rest.shape
-        gui.add_markdown(
-            f"**diffcloth** `{m.name}`: net {net[1]} x {net[0]}, {m.num_frames} frames, "
-            f"{len(m.scene.bodies)} rigid bodies"
-        )
+        gui.add_markdown(f"**diffcloth** `{m.name}`: {m.describe()}")
         self.status = gui.add_markdown(f"first simulation, with the compile: {m.compile_s:.1f} s")
         with gui.add_folder("Playback"):
             self.play = gui.add_checkbox("play", initial_value=autoplay)
-            self.frame_slider = gui.add_slider(
-                "frame", min=0, max=m.num_frames - 1, step=1, initial_value=self.frame
+            self.frame_slider = gui.add_slider(  # one frame (an equilibrium): shown disabled
+                "frame",
+                min=0,
+                max=max(m.num_frames - 1, 1),
+                step=1,
+                initial_value=self.frame,
+                disabled=m.num_frames < 2,
             )
             self.fps = gui.add_slider("fps", min=1.0, max=60.0, step=1.0,
                                       initial_value=float(round(fps)))  # fmt: skip
@@ -222,10 +234,21 @@ class Viewer:
             for i, pose in enumerate(cams):
                 gui.add_button(f"camera {i}").on_click(lambda _, pose=pose: self.set_camera(pose))
         self.sliders = {}
-        with gui.add_folder("Material"):
-            for name, (label, unit, scale) in SLIDERS.items():
+        off = m.sliders_note is not None
+        with gui.add_folder("Material" if m.kind == "grid" else "Fabric"):
+            if m.kind == "mesh":
+                gui.add_markdown(
+                    m.sliders_note
+                    or (
+                        "A move re-solves the rest shape from the start state (seconds; moves "
+                        "made meanwhile are merged into the next solve)."
+                        if m.scene.sim.mode == "equilibrium"
+                        else "A move re-runs the rollout from the start state."
+                    )
+                )
+            for name, (label, unit, scale) in m.sliders.items():
                 value = m.values[name]
-                lo, hi = slider_range(name, value)
+                lo, hi = slider_range(name, value, scale)
                 if scale == "log":
                     init = math.log10(value) if value > 0 else lo
                     h = gui.add_slider(
@@ -234,19 +257,23 @@ class Viewer:
                         max=round(hi, 2),
                         step=0.05,
                         initial_value=round(init, 2),
+                        disabled=off,
                     )
                 else:  # fmt: skip
                     h = gui.add_slider(f"{label} ({unit})", min=lo, max=round(hi, 3),
-                                       step=round(hi / 100, 4), initial_value=value)  # fmt: skip
+                                       step=round(hi / 100, 4), initial_value=value,
+                                       disabled=off)  # fmt: skip
                 h.on_update(lambda _, name=name: self._slider_moved(name))
                 self.sliders[name] = h
-        with gui.add_folder("Wind (m/s)"):
-            for k, axis in enumerate("xyz"):
-                w = float(m.values["wind"][k])
-                lo, hi = slider_range("wind", w)
-                h = gui.add_slider(f"wind {axis}", min=lo, max=hi, step=0.1, initial_value=w)
-                h.on_update(lambda _: self._slider_moved("wind"))
-                self.sliders[f"wind_{axis}"] = h
+        if m.has_wind:
+            with gui.add_folder("Wind (m/s)"):
+                for k, axis in enumerate("xyz"):
+                    w = float(m.values["wind"][k])
+                    lo, hi = slider_range("wind", w)
+                    h = gui.add_slider(f"wind {axis}", min=lo, max=hi, step=0.1,
+                                       initial_value=w, disabled=off)  # fmt: skip
+                    h.on_update(lambda _: self._slider_moved("wind"))
+                    self.sliders[f"wind_{axis}"] = h
         self.values_md = gui.add_markdown(self._values_text())
         with gui.add_folder("diffcloth render"):
             from diffcloth.render import SHADING_MODES
@@ -308,10 +335,12 @@ class Viewer:
                 )
 
     def _values_text(self) -> str:
-        v = self.model.values
-        parts = [f"{SLIDERS[n][0]} {v[n]:.3g}" for n in SLIDERS]
-        wind = ", ".join(f"{a:.2g}" for a in v["wind"])
-        return "Values: " + "; ".join(parts) + f"; wind ({wind}) m/s"
+        m = self.model
+        v = m.values
+        parts = [f"{label} {v[n]:.3g}" for n, (label, _, _) in m.sliders.items()]
+        if m.has_wind:
+            parts.append("wind ({}) m/s".format(", ".join(f"{a:.2g}" for a in v["wind"])))
+        return "Values: " + "; ".join(parts)
 
     def set_camera(self, pose) -> None:
         """Move every connected client's camera to a scene camera pose (`model.camera_pose`)."""
@@ -344,7 +373,7 @@ class Viewer:
         if name == "wind":
             return np.array([self.sliders[f"wind_{a}"].value for a in "xyz"], np.float64)
         v = float(self.sliders[name].value)
-        return 10.0**v if SLIDERS[name][2] == "log" else v
+        return 10.0**v if self.model.sliders[name][2] == "log" else v
 
     def _slider_moved(self, name: str) -> None:
         with self._cv:
@@ -362,6 +391,8 @@ class Viewer:
                     return
                 changes, since = self._pending, self._pending_since
                 self._pending, self._pending_since = {}, None
+            if self.model.kind == "mesh":  # seconds, not milliseconds: say so meanwhile
+                self.status.content = f"re-solving with {self._changes_text(changes)} ..."
             try:
                 wall = self.model.resimulate(changes)
             except ValueError as err:
@@ -372,18 +403,26 @@ class Viewer:
             self.scene3d.show(self.frame)
             latency = time.perf_counter() - since
             self.latencies.append(latency)
-            msg = (
-                f"re-simulated {self.model.num_frames} frames in {1e3 * wall:.0f} ms "
-                f"(slider -> frames {1e3 * latency:.0f} ms)"
-            )
+            what = f"re-simulated {self.model.num_frames} frames"
+            st = self.model.mesh_status
+            if st is not None and self.model.scene.sim.mode == "equilibrium":
+                what = f"re-solved the rest shape ({int(st['iterations'][0])} Newton steps)"
+            msg = f"{what} in {1e3 * wall:.0f} ms (slider -> frames {1e3 * latency:.0f} ms)"
             self.status.content = msg
             self.values_md.content = self._values_text()
             log.info("%s: %s", msg, changes)
             if self.shading.value != "off":
                 self._render_request.set()
 
+    @staticmethod
+    def _changes_text(changes) -> str:
+        return ", ".join(
+            f"{k} {np.round(v, 2).tolist()}" if k == "wind" else f"{k} {v:.3g}"
+            for k, v in changes.items()
+        )
+
     def _reset_sliders(self) -> None:
-        for name, (_, _, scale) in SLIDERS.items():
+        for name, (_, _, scale) in self.model.sliders.items():
             v = self.model.values[name]
             self.sliders[name].value = math.log10(v) if scale == "log" and v > 0 else v
 

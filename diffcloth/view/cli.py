@@ -25,7 +25,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     try:
         model = load_view(args.path, level=args.level, size=args.size)
-    except (ConfigError, OSError) as err:
+    except (ConfigError, OSError, ValueError) as err:  # ValueError: a mesh solve that failed
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"  ready in {time.perf_counter() - t0:.1f} s", flush=True)

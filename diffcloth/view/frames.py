@@ -28,13 +28,14 @@ SLIDERS: dict[str, tuple[str, str, str]] = {
 WIND_LIMIT = 5.0  # m/s, default range of each wind component slider
 
 
-def slider_range(name: str, value: float) -> tuple[float, float]:
+def slider_range(name: str, value: float, scale: str | None = None) -> tuple[float, float]:
     """(lo, hi) of a slider around the scene's value: two decades either side for "log" sliders
-    (in log10 units), [0, max(4 value, 2)] for linear ones, +-5 m/s (or more) for wind."""
+    (in log10 units), [0, max(4 value, 2)] for linear ones, +-5 m/s (or more) for wind.
+    scale: "log" or "lin" (default: the grid's `SLIDERS` entry of `name`)."""
     if name.startswith("wind"):
         lim = max(WIND_LIMIT, 2 * abs(value))
         return -lim, lim
-    if SLIDERS[name][2] == "log":
+    if (scale or SLIDERS[name][2]) == "log":
         c = math.log10(value) if value > 0 else -4.0
         return c - 2.0, c + 2.0
     return 0.0, max(4.0 * value, 2.0)

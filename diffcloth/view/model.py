@@ -6,6 +6,10 @@ pipeline (physics -> tessellation -> per-vertex sphere collision) again; `push(.
 `fire(...)` re-simulate from the current frame on with an impulse or a thruster on a rigid body.
 The compiled function is cached at module level (one compile per scene structure), so a slider
 move costs one run of the physics, not a compile. Nothing here imports viser.
+
+A triangle-mesh cloth (`scene.cloth_kind(scene) == "mesh"`, [cloth] shape) takes the functions of
+`view.mesh`: its frames are `pipeline.mesh_simulate`'s (a dynamic rollout, or one frame: the
+static equilibrium) drawn as the renderer draws them, its sliders are the fabric's fields.
 """
 
 # ruff: noqa: F401  (re-exports: names moved to sibling modules stay importable here)
@@ -26,6 +30,7 @@ import numpy as np
 
 from diffcloth import physics, surface
 from diffcloth.pipeline import apply_params, param_value
+from diffcloth.scene import cloth_kind
 from diffcloth.view.frames import (
     _RENDER,
     _SIMULATE,
@@ -99,8 +104,9 @@ class ViewModel:
     """A scene's frames and the state of the viewer's controls.
 
     Args:
-      scene: the Scene.
-      level: tessellation level of the drawn cloth (default max(scene level, 8)).
+      scene: the Scene (grid or mesh cloth: `kind`).
+      level: tessellation level of the drawn grid cloth (default max(scene level, 8)); a mesh
+        cloth is drawn as the renderer draws it ([cloth] subdivide) and ignores it.
       base_params: parameters applied to the scene before the sliders' (e.g. a fit's result).
       target_params: if given, a second, fixed sequence (a fit's target) is simulated with them.
       fit: the FitData of a result folder.
@@ -118,22 +124,40 @@ class ViewModel:
         name: str = "scene",
     ):
         self.scene = apply_params(scene, base_params) if base_params else scene
-        self.level = int(level or max(scene.level, 8))
+        self.kind = cloth_kind(scene)
         self.fit = fit
         self.name = name
-        self.faces = np.asarray(
-            surface.grid_faces(surface.vertex_grid_shape(scene.net.rest.shape, self.level,
-                                                         scene.basis))
-        )  # fmt: skip
-        if scene.flip:
-            self.faces = np.ascontiguousarray(self.faces[:, ::-1])
-        self.values = {n: float(param_value(self.scene, n)) for n in SLIDERS}
-        self.values["wind"] = np.asarray(param_value(self.scene, "wind"), np.float64)
+        #: slider name -> (label, unit, "log" | "lin"); the wind has its own three sliders
+        self.sliders: dict[str, tuple[str, str, str]] = dict(SLIDERS)
+        #: why the sliders are disabled (shown in the viewer), or None
+        self.sliders_note: str | None = None
+        if self.kind == "mesh":
+            from diffcloth.view import mesh as vm
+
+            self.level = None
+            self.faces = vm.mesh_faces(scene)
+            self.sliders = vm.mesh_sliders(scene)
+            self.sliders_note = vm.slider_note(scene)
+            self.has_wind = scene.sim.mode == "dynamic"
+        else:
+            self.level = int(level or max(scene.level, 8))
+            self.faces = np.asarray(
+                surface.grid_faces(surface.vertex_grid_shape(scene.net.rest.shape, self.level,
+                                                             scene.basis))
+            )  # fmt: skip
+            if scene.flip:
+                self.faces = np.ascontiguousarray(self.faces[:, ::-1])
+            self.has_wind = True
+        self.values = {n: float(param_value(self.scene, n)) for n in self.sliders}
+        if self.has_wind:
+            self.values["wind"] = np.asarray(param_value(self.scene, "wind"), np.float64)
+        #: mesh runs: per-frame Newton iterations and residuals of the last run (equilibrium)
+        self.mesh_status: dict[str, np.ndarray] | None = None
         self.log: list[str] = []
         self.resim_count = 0
         self._lock = threading.Lock()
         nb = len(scene.bodies)
-        dtype = self.scene.net.rest.dtype
+        dtype = self.dtype
         self._no_thrust = (
             jnp.zeros((nb, scene.num_frames, 1), dtype),
             jnp.tile(jnp.asarray([[0.0, 0.0, 1.0]], dtype), (nb, 1)),
@@ -142,6 +166,8 @@ class ViewModel:
         t0 = time.perf_counter()
         self.frames = self._run(self._params(), self.scene.state, self.scene.bodies)
         self.compile_s = time.perf_counter() - t0
+        if self.kind == "mesh" and not bool(self.frames.ok):
+            raise ValueError(f"{name}: {self._mesh_failure()}")
         self.target = None
         if target_params:
             self.target = self._run(
@@ -153,7 +179,26 @@ class ViewModel:
     # ---- properties -------------------------------------------------------------------------
     @property
     def num_frames(self) -> int:
-        return self.scene.num_frames
+        """Frames on screen: the scene's, or 1 for a mesh cloth's static equilibrium."""
+        return int(self.frames.cloth.shape[0])
+
+    @property
+    def dtype(self):
+        return self.scene.net.rest.dtype
+
+    def describe(self) -> str:
+        """One line on the cloth: the grid net's size, or the mesh's vertices, faces and mode."""
+        s = self.scene
+        if self.kind == "mesh":
+            n, m = int(s.net.rest.shape[0]), int(self.faces.shape[0])
+            mode = (
+                "static equilibrium (the rest shape: one frame)"
+                if s.sim.mode == "equilibrium"
+                else f"dynamic, {s.sim.integrator} Euler, {self.num_frames} frames"
+            )
+            return f"mesh cloth, {n:,} vertices ({m:,} drawn faces), {mode}"
+        net = s.net.rest.shape
+        return f"net {net[1]} x {net[0]}, {self.num_frames} frames, {len(s.bodies)} rigid bodies"
 
     @property
     def dt(self) -> float:
@@ -180,6 +225,10 @@ class ViewModel:
 
     def planes(self) -> list[tuple[np.ndarray, float]]:
         cs = self.scene.colliders
+        if self.kind == "mesh":
+            from diffcloth.view.mesh import collider_planes
+
+            return collider_planes(cs)
         if cs is None or cs.planes.offset.shape[0] == 0:
             return []
         p = cs.planes.batched()
@@ -197,14 +246,51 @@ class ViewModel:
             for b in self.scene.bodies
         ]
 
+    def boxes(self) -> list[dict[str, Any]]:
+        """Static box colliders (a mesh cloth's [[boxes]]): center, half_extents, wxyz each."""
+        if self.kind != "mesh":
+            return []
+        from diffcloth.view.mesh import collider_boxes
+
+        return collider_boxes(self.scene.colliders)
+
+    def collider_meshes(self) -> list[tuple[str, np.ndarray, np.ndarray]]:
+        """Other static colliders as (kind, vertices, faces): a mesh cloth's [[cylinders]]
+        (capped, e.g. the drape tester's pedestal) and [[meshes]]."""
+        if self.kind != "mesh":
+            return []
+        from diffcloth.view.mesh import collider_meshes
+
+        return collider_meshes(self.scene.colliders)
+
     # ---- simulation -------------------------------------------------------------------------
     def _params(self) -> dict[str, jax.Array]:
-        dtype = self.scene.net.rest.dtype
-        p = {n: jnp.asarray(self.values[n], dtype) for n in SLIDERS}
-        p["wind"] = jnp.asarray(self.values["wind"], dtype)
+        dtype = self.dtype
+        p = {n: jnp.asarray(self.values[n], dtype) for n in self.sliders}
+        if self.has_wind:
+            p["wind"] = jnp.asarray(self.values["wind"], dtype)
         return p
 
+    def _mesh_failure(self) -> str:
+        from diffcloth.physics.mesh.run import MeshStatus, status_message
+
+        st = self.mesh_status
+        status = MeshStatus(st["converged"], st["iterations"], st["residual"])
+        return status_message(self.scene.sim, status) or (
+            "the mesh cloth's frames are not finite (check the fabric values)"
+        )
+
     def _run(self, params, state, bodies, thrust=None) -> Frames:
+        if self.kind == "mesh":
+            from diffcloth.view.mesh import _SIMULATE_MESH
+
+            frames, converged, iterations, residual = _SIMULATE_MESH(self.scene, params)
+            self.mesh_status = {
+                "converged": np.asarray(converged),
+                "iterations": np.asarray(iterations),
+                "residual": np.asarray(residual),
+            }
+            return _to_numpy(frames)
         controls, directions, strengths = thrust or self._no_thrust
         out = _SIMULATE(
             self.scene, params, state, tuple(bodies), controls, directions, strengths,
@@ -222,25 +308,40 @@ class ViewModel:
         previous values and frames are kept and ValueError is raised naming the values.
         """
         with self._lock:
+            if self.sliders_note:
+                raise ValueError(self.sliders_note)
             old = {k: np.copy(v) for k, v in self.values.items()}
+            allowed = (["wind"] if self.has_wind else []) + list(self.sliders)
+            for name in changes or {}:
+                if name not in allowed:
+                    raise ValueError(f"unknown slider {name!r}; allowed: {', '.join(allowed)}")
             for name, value in (changes or {}).items():
-                if name != "wind" and name not in SLIDERS:
-                    raise ValueError(
-                        f"unknown slider {name!r}; allowed: wind, {', '.join(SLIDERS)}"
-                    )
                 self.values[name] = (
                     np.asarray(value, np.float64) if name == "wind" else float(value)
                 )
+            if self.kind == "mesh":  # the fabric's own rules (e.g. bend_bias >= bends / 4)
+                try:
+                    apply_params(self.scene, {k: np.asarray(v) for k, v in self.values.items()})
+                except ValueError as err:
+                    self.values = old
+                    msg = f"refused {dict(changes or {})}: {err}"
+                    self._note(msg)
+                    raise ValueError(msg) from None
             t0 = time.perf_counter()
             frames = self._run(self._params(), self.scene.state, self.scene.bodies)
             wall = time.perf_counter() - t0
             self.resim_count += 1
             if not bool(frames.ok):
                 self.values = old
+                why = (
+                    self._mesh_failure()
+                    if self.kind == "mesh"
+                    else "the explicit integrator needs a smaller dt or more substeps for such "
+                    "stiff or light cloth"
+                )
                 msg = (
                     f"re-simulation {self.resim_count} unstable with {dict(changes or {})}: kept "
-                    "the previous frames (the explicit integrator needs a smaller dt or more "
-                    "substeps for such stiff or light cloth)"
+                    f"the previous frames ({why})"
                 )
                 self._note(msg)
                 raise ValueError(msg)
@@ -360,6 +461,18 @@ class ViewModel:
         scene = dataclasses.replace(
             self.scene, cameras=(self.scene.cameras[camera],), shading=shading
         )
+        if self.kind == "mesh":
+            from diffcloth.view.mesh import _RENDER_MESH
+
+            c = (
+                np.asarray(scene.spheres.batched().center)
+                if scene.spheres is not None
+                else np.zeros((0, 3))
+            )
+            img = _RENDER_MESH(scene, self._params(), jnp.asarray(self.frames.x[frame]),
+                               jnp.asarray(c, self.dtype))  # fmt: skip
+            img = np.clip(np.asarray(img, np.float64), 0.0, 1.0) ** (1.0 / 2.2)
+            return (255 * img + 0.5).astype(np.uint8)
         centers = []
         if scene.spheres is not None:
             centers.append(np.asarray(scene.spheres.batched().center))
@@ -367,7 +480,7 @@ class ViewModel:
         if balls:
             centers.append(self.frames.body_position[frame, balls])
         c = np.concatenate(centers) if centers else np.zeros((0, 3))
-        dtype = self.scene.net.rest.dtype
+        dtype = self.dtype
         img = _RENDER(
             scene, self._params(), jnp.asarray(self.frames.x[frame]), jnp.asarray(c, dtype)
         )
