@@ -172,6 +172,28 @@ def test_cli_export_of_a_mesh_config(tmp_path, capsys, cusick_path, cusick):
 
 
 # ---- the tablecloth: a box collider -----------------------------------------------------------
+def test_tablecloth_box_collider_is_drawn(tmp_path):
+    from diffcloth.config import load_config
+    from diffcloth.scene import build_scene
+    from diffcloth.view.mesh import collider_boxes, collider_meshes, collider_planes, mesh_faces
+
+    scene = build_scene(load_config(_coarse(tmp_path, "tablecloth", 0.06)))
+    ((box),) = collider_boxes(scene.colliders)
+    np.testing.assert_allclose(box["center"], [0.0, -0.35, 0.0])
+    np.testing.assert_allclose(box["half_extents"], [0.25, 0.35, 0.18])
+    np.testing.assert_allclose(box["wxyz"], [1.0, 0.0, 0.0, 0.0], atol=1e-12)
+    assert collider_meshes(scene.colliders) == []
+    assert [o for _, o in collider_planes(scene.colliders)] == [-0.7]
+    assert mesh_faces(scene).max() == scene.net.rest.shape[0] - 1
+    # [cloth] subdivide: the drawn faces are the Loop subdivision's (4x), as the renderer draws
+    path = _coarse(tmp_path, "tablecloth", 0.06)
+    path.write_text(path.read_text().replace("[cloth]\n", "[cloth]\nsubdivide = 1\n", 1))
+    sub = build_scene(load_config(path))
+    assert len(mesh_faces(sub)) == 4 * len(mesh_faces(scene))
+    assert mesh_faces(sub).max() == sub.display.num_vertices - 1
+
+
+@pytest.mark.slow  # a second equilibrium compile: ~30 s on the 2-core machine
 def test_tablecloth_drapes_over_the_box(tmp_path):
     from diffcloth.view.model import load_view
 
