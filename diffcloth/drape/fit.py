@@ -24,6 +24,7 @@ average it down.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 
 import jax
@@ -311,6 +312,24 @@ def _summarise(cfg, names, q, jac, r, sims, xs, obs, nodes, sigma, history, secs
     )
     values = {p: float(np.exp(v)) for p, v in zip(cfg.params, q, strict=True)}
     std = {p: float(np.exp(v) * s) for p, v, s in zip(cfg.params, q, sd_q, strict=True)}
+    # a parameter at the end of its range with the residuals still large: the model cannot
+    # reproduce the drapes with the parameters fitted
+    sim_feats = np.array([sims[k][0] for k in nodes])
+    misfit = np.nanmax(np.abs(sim_feats - obs) / sigma) if obs.size else 0.0
+    for p, v in zip(cfg.params, q, strict=True):
+        lo, hi = (math.log(b) for b in FIT_PARAMS[p])
+        if misfit > 1.0 and min(v - lo, hi - v) < 1e-3:
+            end = "lower" if v - lo < hi - v else "upper"
+            dc_obs, dc_sim = float(np.mean(obs[:, 0])), float(np.mean(sim_feats[:, 0]))
+            advice = (" For limp fabrics the drape is set by the membrane too: add 'shear' (and "
+                      "'stretch') to [fit] params." if end == "lower" else "")  # fmt: skip
+            note = (note + " " if note else "") + (
+                f"{p} stopped at the {end} end of its range ({FIT_PARAMS[p][0 if end == 'lower' else 1]:g}"
+                f") with the simulated drapes still {misfit:.1f} tester errors away (DC measured "
+                f"{dc_obs:.3f}, simulated {dc_sim:.3f}): the fitted values are not a fabric that "
+                f"reproduces the images.{advice}"
+            )  # fmt: skip
+            converged = False
     # each observation's own linearised fit: q_i = q - J_i^+ (F_sim - F_i) / sigma
     q_i = []
     for k, o in zip(nodes, obs, strict=True):
@@ -320,7 +339,6 @@ def _summarise(cfg, names, q, jac, r, sims, xs, obs, nodes, sigma, history, secs
                                                                         / sigma[use]))  # fmt: skip
     q_i = np.array(q_i)
     population = {p: np.exp(q_i[:, k]) for k, p in enumerate(cfg.params)}
-    sim_feats = np.array([sims[k][0] for k in nodes])
     spread = np.array([sims[k][2].std(axis=0) for k in nodes])
     n_obs, n_f = obs.shape
     return DrapeFit(values=values, std=std, population=population, correlation=corr,

@@ -55,7 +55,9 @@ def predict_drapes(model: DrapeModel, fabric_values: dict, seeds, *, amplitude=2
 
 def compare(observed, predictions: list[dict]) -> list[dict]:
     """Per accepted observation: file, sample, side, dc, node_count, the predicted DC mean and
-    std, the best-rotation IoU with the closest predicted drape (its seed, rotation, mirror)."""
+    std, the best-rotation IoU with the closest predicted drape (its seed, rotation, mirror).
+    Predicted drapes whose solve did not converge are left out (the report counts them)."""
+    predictions = [p for p in predictions if p["converged"]] or predictions
     dcs = np.array([p["dc"] for p in predictions])
     rows = []
     for m in observed.accepted:
@@ -136,7 +138,7 @@ def write_outputs(folder, cfg, observed, predictions, rows, *, fabric_values, fi
     (folder / "fabric.toml").write_text(
         _fabric_toml(cfg.name, fabric_values, fitted, fit.std if fit else {})
     )
-    pred_nodes = Counter(p["node_count"] for p in predictions)
+    pred_nodes = Counter(p["node_count"] for p in predictions if p["converged"])
     obs_nodes = Counter(int(v) for v in observed.nodes)
     summary = {
         "name": cfg.name, "config": str(cfg.source), "fabric": fabric_values,
@@ -173,6 +175,8 @@ def write_outputs(folder, cfg, observed, predictions, rows, *, fabric_values, fi
 
 
 def _markdown(cfg, observed, predictions, rows, fit, truth, obs_nodes, pred_nodes, values):
+    failed = [p["seed"] for p in predictions if not p["converged"]]
+    predictions = [p for p in predictions if p["converged"]] or predictions
     dcs = np.array([p["dc"] for p in predictions])
     md = [f"# Drape test: {cfg.name}", "",
           f"Config `{cfg.source.name}`; specimen radius {cfg.geometry.specimen_radius} m, pedestal "
@@ -193,7 +197,7 @@ def _markdown(cfg, observed, predictions, rows, fit, truth, obs_nodes, pred_node
         for name, jrow in zip(fit.names, fit.jacobian, strict=True):
             md.append(f"| {name} | " + " | ".join(f"{v:+.4f}" for v in jrow) + " |")
         if fit.note:
-            md += ["", f"**Identifiability:** {fit.note}."]
+            md += ["", f"**Note:** {fit.note}"]
         md.append("")
     if truth is not None and fit is not None:
         md += ["| parameter | fitted | true | error |", "|---|---|---|---|"]
@@ -218,7 +222,8 @@ def _markdown(cfg, observed, predictions, rows, fit, truth, obs_nodes, pred_node
                   "| | | | |")  # fmt: skip
     md += ["", "## Prediction", "",
            f"{len(predictions)} drapes from random imperfections: DC {dcs.mean():.4f} +- "
-           f"{dcs.std():.4f} ({dcs.min():.4f}..{dcs.max():.4f}).", "",
+           f"{dcs.std():.4f} ({dcs.min():.4f}..{dcs.max():.4f})."
+           + (f" Left out, their solves not converged: seeds {failed}." if failed else ""), "",
            "| node count | observed | predicted |" + (" truth |" if truth else ""),
            "|---|---|---|" + ("---|" if truth else "")]  # fmt: skip
     t_nodes = Counter(s["node_count"] for s in (truth or {}).get("seeds", []))
