@@ -1,7 +1,8 @@
 """The mesh cloth's host-side sparse solves (`diffcloth.physics.mesh.linsolve`): solutions
-against a dense solve, failed factorizations as NaN, and no memory kept by factorizations that
-callbacks on other threads dropped (SciPy's SuperLU frees a factorization's memory only from the
-thread that made it: factors made and evicted on varying threads leaked GBs per drape solve)."""
+against a dense solve, pinned rows as the identity, failed factorizations as NaN, fill-reducing
+orderings, and no memory kept by factorizations that callbacks on other threads dropped (SciPy's
+SuperLU frees a factorization's memory only from the thread that made it: factors made and
+evicted on varying threads leaked GBs per drape solve)."""
 
 from __future__ import annotations
 
@@ -57,12 +58,54 @@ def test_direct_solve_matches_dense():
     np.testing.assert_allclose(np.asarray(z), want, rtol=1e-9, atol=1e-12)
 
 
+def test_pinned_rows_are_the_identity():
+    h, nbr, a = _grid_system(6)
+    dense = a.toarray()
+    n = nbr.shape[0]
+    free = np.ones(n, bool)
+    free[[0, 7, 20]] = False
+    rhs = np.random.default_rng(2).standard_normal((n, 3))
+    z = np.asarray(linsolve.direct_solve(jnp.asarray(h), jnp.asarray(nbr), jnp.asarray(rhs),
+                                         jnp.asarray(free)))  # fmt: skip
+    fd = np.repeat(free, 3)
+    want = rhs.reshape(-1).copy()
+    want[fd] = np.linalg.solve(dense[np.ix_(fd, fd)], rhs.reshape(-1)[fd])
+    np.testing.assert_allclose(z.reshape(-1), want, rtol=1e-9, atol=1e-12)
+    # the same as pin_rows' identity rows over every vertex
+    hp = linsolve.pin_rows(jnp.asarray(h), jnp.asarray(nbr), jnp.asarray(free))
+    z2 = linsolve.direct_solve(hp, jnp.asarray(nbr), jnp.asarray(rhs))
+    np.testing.assert_allclose(np.asarray(z2), z, rtol=1e-9, atol=1e-12)
+
+
 def test_failed_factorization_solves_to_nan():
     h, nbr, _ = _grid_system(4)
     h[3, 0] = np.nan
     rhs = jnp.ones((nbr.shape[0], 3))
     z = linsolve.direct_solve(jnp.asarray(h), jnp.asarray(nbr), rhs)
     assert np.all(np.isnan(np.asarray(z)))
+
+
+def test_nested_dissection_is_a_permutation_with_less_fill():
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spl
+
+    _, nbr, a = _grid_system(40)
+    n = nbr.shape[0]
+    rows = np.repeat(np.arange(n), nbr.shape[1])
+    graph = sp.csr_matrix((np.ones(rows.size), (rows, nbr.ravel())), shape=(n, n))
+    graph = (graph + graph.T).tocsr()
+    graph.setdiag(0)
+    graph.eliminate_zeros()
+    perm = linsolve._nested_dissection(graph)
+    assert np.array_equal(np.sort(perm), np.arange(n))
+
+    def fill(p):
+        dofs = (p[:, None] * 3 + np.arange(3)).ravel()
+        lu = spl.splu(a[dofs][:, dofs].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                      options={"SymmetricMode": True})  # fmt: skip
+        return lu.L.nnz + lu.U.nnz
+
+    assert fill(perm) < 0.75 * fill(np.arange(n))  # row by row: a band of 3 (side + 1)
 
 
 @pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads VmRSS from /proc")

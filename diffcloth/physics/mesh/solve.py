@@ -191,7 +191,7 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         if st.linear_solver == "direct":
             # Newton-Krylov: CG on the exact Hessian (+ mu M), preconditioned by the LU of the
             # PSD approximation; at negative curvature, the approximation's own step
-            token = linsolve.factor(linsolve.pin_rows(hmat, cloth.neighbors, free), cloth.neighbors)
+            token = linsolve.factor(hmat, cloth.neighbors, free)
             pre = lambda r: linsolve.solve(token, r) * fmask
             hvp = lambda p: jax.jvp(grad_fn, (x,), (p,))[1]
             exact = lambda p: (hvp(p * fmask) + mu * mass[:, None] * p) * fmask
@@ -263,7 +263,7 @@ def _argmin_jvp(problem, primals, tangents):
     hmat = _hessian(problem, x, theta)
     if problem.settings.linear_solver == "direct":  # the approximate Hessian's LU preconditions
         nbr = _cloth_of(theta).neighbors
-        token = linsolve.factor(linsolve.pin_rows(hmat, nbr, free), nbr)
+        token = linsolve.factor(hmat, nbr, free)
         pre = lambda r: jnp.where(fmask, linsolve.solve(token, r), r)
     else:
         block = _block_jacobi(hessian.block_diagonal(hmat), free)
