@@ -262,6 +262,7 @@ def test_hanging_strip_elongation_matches_linear_elasticity(strips):
         assert np.max(np.abs(x[part, 2])) < 1e-12  # stays in its plane
 
 
+@pytest.mark.slow  # about 50 s loaded: a third equilibrium compile of the strips
 def test_not_converged_is_reported(strips):
     cloth, fabric, _, _, _ = strips
     res = equilibrium(
@@ -465,7 +466,10 @@ def _undamped():
     return make_fabric(damping=0.0, drag=0.0, friction=0.0)
 
 
-@pytest.mark.parametrize("integrator", ["implicit", "symplectic"])
+# the implicit case compiles the implicit-Euler rollout (about 70 s idle, 140 s loaded): slow tier
+@pytest.mark.parametrize(
+    "integrator", [pytest.param("implicit", marks=pytest.mark.slow), "symplectic"]
+)
 def test_free_fall_is_exact(dynamics, integrator):
     """Unpinned, no collider: a rigid motion x0 + v0 t + g t (t + h) / 2, the exact solution of
     both Euler schemes (continuous free fall is t^2 / 2; the O(h) term is the schemes')."""
