@@ -4,7 +4,8 @@ symplectic Euler steps, and a rollout.
 Equilibrium: minimise the total potential Pi(x) = membrane + bending + gravity + contact over
 the free vertices with a damped Newton method (Levenberg-Marquardt in the mass metric): each
 iteration solves (H + mu M) p = -grad Pi by conjugate gradients on Hessian-vector products,
-accepts the step if it lowers Pi (mu shrinks) and rejects it otherwise (mu grows). A small mu
+takes the longest of p, p/2, p/4 that lowers Pi (mu shrinks if the decrease is as the quadratic
+model predicts, grows if far less) and rejects it otherwise (mu grows). A small mu
 is Newton's method; a large one is a short implicit-Euler step of pseudo-time 1/sqrt(mu), so the
 solve also crosses the buckling (fold-forming) region of a drape where the Hessian is
 indefinite. Its gradient is the implicit function theorem's (`jax.lax.custom_root`): one linear
@@ -56,7 +57,8 @@ class SolverSettings:
     Attributes:
       max_iters: Newton iterations at most (equilibrium: accepted and rejected steps together).
       cg_iters: conjugate-gradient iterations per Newton step at most.
-      cg_tol: relative residual of each CG solve (and of the gradient's adjoint solve).
+      cg_tol: relative residual of each CG solve (and of the gradient's adjoint solve; with
+        krylov_forcing, the least one a Newton step's solve is given).
       tol: convergence: the largest free-vertex force below tol times the vertex's weight
         (|grad Pi_i| <= tol m_i |g|), dimensionless; raised to the floor that rounding the
         positions to the dtype causes (4 eps |x_i| k_ii / (m_i |g|), k_ii the vertex's
@@ -67,6 +69,16 @@ class SolverSettings:
         "cg" (block-Jacobi conjugate gradients in the compiled program).
       krylov_iters: with "direct", CG iterations per Newton step on the exact Hessian,
         preconditioned by the LU of its PSD approximation (Newton's fast final convergence).
+      krylov_forcing: those iterations stop at a relative residual set by the progress of the
+        last step (Eisenstat-Walker: 0.9 (|g_k| / |g_k-1|)^2, within [cg_tol, 0.5]): loose while
+        the folds move, tight where Newton converges fast; False: cg_tol for every step.
+      line_search: step lengths tried along each Newton direction, 1, 1/2, 1/4, ... (this many,
+        evaluated together): the longest that lowers the energy by 1e-4 of the model's
+        prediction is taken; 1 accepts or rejects the full step only.
+      mu_update: "ratio" (after a step of length a with gain ratio rho, the energy's decrease
+        over the model's: mu x0.25 if a rho >= 0.75, kept if >= 0.25, else x2; rejections: x2, x4,
+        x8, ..., from 1 at least) or "fixed" (x0.25 on acceptance, x8 on rejection).
+        line_search=1, mu_update="fixed", krylov_forcing=False: the solver before 2026-11-28.
     """
 
     max_iters: int = dataclasses.field(default=200, metadata={"static": True})
@@ -76,6 +88,9 @@ class SolverSettings:
     mu0: float = dataclasses.field(default=1e2, metadata={"static": True})
     linear_solver: str = dataclasses.field(default="direct", metadata={"static": True})
     krylov_iters: int = dataclasses.field(default=10, metadata={"static": True})
+    krylov_forcing: bool = dataclasses.field(default=True, metadata={"static": True})
+    line_search: int = dataclasses.field(default=3, metadata={"static": True})
+    mu_update: str = dataclasses.field(default="ratio", metadata={"static": True})
 
 
 class EquilibriumResult(NamedTuple):
@@ -163,8 +178,10 @@ def _hessian(problem: _Problem, x, theta):
 
 def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     """Minimise `_energy` over the free vertices from x0 (Levenberg-Marquardt-damped Newton,
-    PCG on the assembled Hessian)."""
+    PCG on the assembled Hessian, a backtracking line search on each step)."""
     st = problem.settings
+    if st.mu_update not in ("ratio", "fixed"):
+        raise ValueError(f"mu_update must be 'ratio' or 'fixed', got {st.mu_update!r}")
     cloth, fabric = theta["cloth"], theta["fabric"]
     free = theta["free"]
     fmask = free[:, None]
@@ -174,17 +191,19 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     total = lambda x: _energy(problem, x, theta)
     grad_fn = jax.grad(total)
     eye = jnp.eye(3, dtype=x0.dtype)
+    alphas = jnp.asarray(0.5 ** np.arange(max(st.line_search, 1)), x0.dtype)  # 1, 1/2, ...
+    armijo = 1e-4 if st.line_search > 1 else 0.0
 
     def residual(g):
         r = jnp.max(jnp.where(free, jnp.sqrt(jnp.sum(g * g, axis=-1)) / weight, 0.0))
         return jnp.where(jnp.isfinite(r), r, jnp.inf)
 
     def cond(c):
-        x, e, g, mu, k, res = c
+        x, e, g, mu, nu, eta, k, res = c
         return (k < st.max_iters) & (res > tol) & jnp.isfinite(e) & (mu < 1e14)
 
     def body(c):
-        x, e, g, mu, k, res = c
+        x, e, g, mu, nu, eta, k, res = c
         hmat = _hessian(problem, x, theta)
         hmat = hmat.at[:, 0].add((mu * mass)[:, None, None] * eye[None])
         apply_a = lambda p: hessian.matvec(cloth, hmat, p * fmask) * fmask
@@ -195,24 +214,41 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
             pre = lambda r: linsolve.solve(token, r) * fmask
             hvp = lambda p: jax.jvp(grad_fn, (x,), (p,))[1]
             exact = lambda p: (hvp(p * fmask) + mu * mass[:, None] * p) * fmask
-            p, ok, _ = _cg(exact, -g, pre, st.krylov_iters, st.cg_tol)
+            p, ok, _ = _cg(exact, -g, pre, st.krylov_iters, eta)
             p = jnp.where(ok, p, pre(-g))
             ok = jnp.all(jnp.isfinite(p))
             p = jnp.where(ok, p, 0.0)
         else:
             pre = _block_jacobi(hessian.block_diagonal(hmat), free)
             p, ok, _ = _cg(apply_a, -g, pre, st.cg_iters, st.cg_tol)
-        x_try = x + p * fmask
-        e_try = total(x_try)
+        p = p * fmask
+        gp = jnp.minimum(jnp.vdot(g, p), 0.0)  # the model's slope along p
+        e_all = jax.vmap(lambda a: total(x + a * p))(alphas)
         # a decrease, up to the energy's rounding error (float32 cannot resolve the last steps
         # of a stiff membrane's solve in the total energy)
-        accept = ok & jnp.isfinite(e_try) & (e_try <= e + slack)
-        x = jnp.where(accept, x_try, x)
+        good = jnp.isfinite(e_all) & (e_all <= e + armijo * alphas * gp + slack)
+        i = jnp.argmax(good)  # the longest good step
+        accept = ok & jnp.any(good)
+        alpha, e_try = alphas[i], e_all[i]
+        if st.mu_update == "fixed":
+            f, grow = 0.25, 8.0
+        else:
+            # gain ratio; p^T H p = -g.p - mu p^T M p as CG solved (H + mu M) p = -g
+            pmp = jnp.sum(mass[:, None] * p * p)
+            pred = alpha * (-gp) - 0.5 * alpha**2 * (-gp - mu * pmp)
+            rho = jnp.clip((e - e_try) / jnp.maximum(pred, jnp.finfo(x0.dtype).tiny), 0.0, 1.0)
+            f = jnp.where(alpha * rho >= 0.75, 0.25, jnp.where(alpha * rho >= 0.25, 1.0, 2.0))
+            grow, nu = nu, jnp.where(accept, 2.0, 2.0 * nu)
+        mu_acc = jnp.where(mu * f < 1e-3, 0.0, mu * f)
+        mu_new = jnp.where(accept, mu_acc, jnp.maximum(mu * grow, 1.0))
+        x = jnp.where(accept, x + alpha * p, x)
         e = jnp.where(accept, e_try, e)
-        g = jnp.where(accept, grad_fn(x) * fmask, g)
-        mu = jnp.where(accept, jnp.where(mu * 0.25 < 1e-3, 0.0, mu * 0.25),
-                       jnp.maximum(mu * 8.0, 1.0))  # fmt: skip
-        return x, e, g, mu, k + 1, residual(g)
+        g_new = jnp.where(accept, grad_fn(x) * fmask, g)
+        if st.krylov_forcing:  # Eisenstat-Walker's choice 2, safeguarded
+            drop = jnp.vdot(g_new, g_new) / jnp.maximum(jnp.vdot(g, g), jnp.finfo(x0.dtype).tiny)
+            eta_new = jnp.maximum(0.9 * drop, jnp.where(0.9 * eta**2 > 0.1, 0.9 * eta**2, 0.0))
+            eta = jnp.where(accept, jnp.clip(eta_new, st.cg_tol, 0.5), eta)
+        return x, e, g_new, mu_new, nu, eta, k + 1, residual(g_new)
 
     g0 = grad_fn(x0) * fmask
     eps = jnp.finfo(x0.dtype).eps
@@ -225,8 +261,10 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     tol = jax.lax.stop_gradient(jnp.maximum(st.tol, 4.0 * jnp.max(jnp.where(free, noise, 0.0))))
     scale = jnp.sum(weight * (jnp.sum(jnp.abs(x0), axis=-1) + 0.01))
     slack = jax.lax.stop_gradient(16.0 * eps * scale)
-    init = (x0, total(x0), g0, jnp.asarray(problem.mu0, x0.dtype), 0, residual(g0))
-    x, e, g, mu, k, res = jax.lax.while_loop(cond, body, init)
+    mu0, eta0 = problem.mu0, max(st.cg_tol, 0.5) if st.krylov_forcing else st.cg_tol
+    init = (x0, total(x0), g0, *(jnp.asarray(v, x0.dtype) for v in (mu0, 2.0, eta0)), 0,
+            residual(g0))  # fmt: skip
+    x, e, g, mu, nu, eta, k, res = jax.lax.while_loop(cond, body, init)
     conv = (res <= tol) & jnp.all(jnp.isfinite(x))
     return EquilibriumResult(x=_place(theta, x), converged=conv, iterations=k, residual=res,
                              energy=e)  # fmt: skip
