@@ -6,8 +6,8 @@ step of a 10,000-vertex mesh.
     python benchmarks/mesh_cloth.py --out benchmarks/results/mesh_cloth.jsonl   # appends
 
 One JSON line per figure after the "meta" line (`_timing.meta`, plus the git commit and the CPU
-model). Every line carries utc, commit, cpu, cores, load_1min (at that figure), dtype and
-n_vertices.
+model). Every line carries utc, commit, cpu, cores, load_1min (at that figure), dtype,
+n_vertices and max_rss_mb (the process's peak resident memory when the line was written).
 
 Cases
   drape          a Cusick drape test: disc(0.15, 0.0055, rings_at=(0.09,)) (about 2,700
@@ -72,6 +72,16 @@ def git_commit() -> str:
         return out.stdout.strip() + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+def max_rss_mb() -> float | None:
+    """The process's peak resident memory so far, MB (None where `resource` is missing)."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not POSIX
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    return round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)
 
 
 def common(dtype: str, n: int) -> dict:
@@ -148,6 +158,8 @@ def bench_drape(dtype, repeats, out, max_iters=None, edge=EDGE):
                n_faces=cloth.num_faces, preset=PRESET, equilibrium_s=round(t.median, 4),
                equilibrium_min_s=round(t.min, 4), first_call_s=round(first, 2),
                iterations=int(res.iterations), max_iters=st.max_iters,
+               krylov_iters=st.krylov_iters, line_search=getattr(st, "line_search", 1),
+               mu_update=getattr(st, "mu_update", "fixed"), max_rss_mb=max_rss_mb(),
                per_iteration_ms=round(t.median / max(int(res.iterations), 1) * 1e3, 1),
                converged=bool(res.converged),
                residual=float(res.residual), drape_coefficient=round(drape_coefficient(res.x, r), 4),
@@ -172,6 +184,7 @@ def bench_drape(dtype, repeats, out, max_iters=None, edge=EDGE):
                forward_s=row["equilibrium_s"], converged=row["converged"],
                iterations=row["iterations"], first_call_s=round(first, 2), finite=finite,
                grad={k: float(getattr(grad, k)) for k in pm.FABRIC_FIELDS},
+               max_rss_mb=max_rss_mb(),
                aim_s=2.0, met=finite and row["converged"] and t.median < 2.0)  # fmt: skip
     emit(row, out)
 
@@ -194,7 +207,8 @@ def bench_step(dtype, repeats, out, edge=0.0054):
     row = dict(bench="mesh_implicit_step", **common(str(np.dtype(dtype)), cloth.num_vertices),
                n_faces=cloth.num_faces, scene="hanging square 0.5 m, top edge pinned, h=1/60 s",
                step_ms=t.median_ms, step_min_ms=t.min_ms, first_call_s=round(first, 2),
-               finite=bool(jnp.all(jnp.isfinite(s1.x))), max_drop_m=sag)  # fmt: skip
+               finite=bool(jnp.all(jnp.isfinite(s1.x))), max_drop_m=sag,
+               max_rss_mb=max_rss_mb())  # fmt: skip
     emit(row, out)
 
 
