@@ -8,6 +8,8 @@ video = dc.simulate_and_render(scene, {"bend": 2e-3})        # (cameras, T, H, W
 result = dc.fit.fit(scene, video, free=["bend"], steps=50)   # FitResult
 """
 
+from importlib import metadata as _metadata
+
 from diffcloth import fit, io, physics, render, surface
 from diffcloth.physics import ClothState, Material, Net
 from diffcloth.physics.rigid import RigidBody
@@ -23,7 +25,10 @@ from diffcloth.runtime import tune_malloc, tune_xla_cpu
 from diffcloth.scene import Scene, build_scene, load_scene
 from diffcloth.shapes import Plane, Sphere
 
-__version__ = "0.1.0"
+try:  # the installed distribution's version (pyproject.toml)
+    __version__ = _metadata.version("diffcloth")
+except _metadata.PackageNotFoundError:  # a source tree on sys.path, not installed
+    __version__ = "0.2.0"
 
 tune_xla_cpu()  # no import above starts a JAX backend; XLA reads XLA_FLAGS once, when one starts
 tune_malloc()  # freed buffers stay mapped for the next call of a compiled program

@@ -17,6 +17,7 @@ from diffcloth.cli_commands import (
     _render,
     _simulate,
     check_config,
+    resolve_config,
 )
 
 
@@ -248,6 +249,9 @@ def _child(cmd, *, capture: bool) -> tuple[int, str]:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="diffcloth", description=__doc__)
+    from diffcloth import __version__
+
+    parser.add_argument("--version", action="version", version=f"diffcloth {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     cache = argparse.ArgumentParser(add_help=False)
     cache.add_argument(
@@ -367,6 +371,7 @@ def main(argv=None) -> int:
     error), 2 bad usage or config (a one-line message naming the key/file/option), 130 / 143
     interrupted by SIGINT / SIGTERM (`diffcloth.signals`). `--debug` shows the traceback instead."""
     args = build_parser().parse_args(argv)
+    _resolve_configs(args)
     from diffcloth.signals import handle_signals, signal_name
 
     with handle_signals() as sig:  # SIGINT / SIGTERM for every command (diffcloth.signals)
@@ -380,6 +385,17 @@ def main(argv=None) -> int:
         sys.stderr.flush()
         os._exit(code)
     return code
+
+
+def _resolve_configs(args) -> None:
+    """A config path that is not on disk but names a shipped config (`configs/drape_fit.toml` run
+    outside the checkout) reads the shipped copy (`cli_commands.resolve_config`)."""
+    if args.command in ("simulate", "render", "fit"):
+        args.config = resolve_config(args.config)
+    elif args.command == "warmup":
+        args.configs = [resolve_config(c) for c in args.configs]
+    elif args.command == "view" and args.path.endswith(".toml"):
+        args.path = resolve_config(args.path)
 
 
 def _run(args) -> int:

@@ -92,6 +92,45 @@ def _mesh_x64(path) -> bool:
         return False
 
 
+def shipped_configs_dir():
+    """The folder of the example configs that ship with diffcloth, or None: the wheel's package
+    data (diffcloth/configs_data, pyproject.toml's force-include of configs/), else the configs/
+    of the source checkout this package runs from (an editable install)."""
+    from pathlib import Path
+
+    here = Path(__file__).resolve().parent
+    if (here / "configs_data").is_dir():
+        return here / "configs_data"
+    if (here.parent / "pyproject.toml").is_file() and (here.parent / "configs").is_dir():
+        return here.parent / "configs"
+    return None
+
+
+def resolve_config(path: str) -> str:
+    """The config file a command reads: `path` itself when it exists; else the shipped copy it
+    names (`configs/drape_fit.toml`, `configs/experiments/joint.toml` or `drape_fit.toml`, run
+    outside the checkout), saying so in one line; else `path` unchanged, so that the command
+    reports the missing file as before."""
+    from pathlib import Path
+
+    given = Path(path)
+    if given.exists() or given.suffix != ".toml":
+        return path
+    parts = given.parts
+    if "configs" in parts:
+        rel = parts[len(parts) - parts[::-1].index("configs") :]
+    elif len(parts) == 1:
+        rel = parts
+    else:
+        return path
+    root = shipped_configs_dir()
+    if root is None or not rel or ".." in rel or not (root.joinpath(*rel)).is_file():
+        return path
+    found = str(root.joinpath(*rel))
+    print(f"{path} is not here; using the copy shipped with diffcloth: {found}", flush=True)
+    return found
+
+
 def _err(msg: str) -> None:
     print(f"error: {msg}", file=sys.stderr, flush=True)
 

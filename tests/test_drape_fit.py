@@ -142,6 +142,7 @@ def test_cli_sets_aside_a_misscaled_image_and_refuses_when_none_is_left(tmp_path
 
 
 @pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_feature_jacobian_matches_central_differences():
     """d(DC, c2)/d(log bend) through the equilibrium (implicit function theorem) against central
     differences of warm-started solves (same fold branch), float64, solved to a force residual of

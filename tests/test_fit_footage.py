@@ -235,6 +235,7 @@ def test_nuisance_ranges_and_constraints():
 
 
 @pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_nuisance_gradients_match_fd(small, frame_fn):
     """d/d(every nuisance parameter) of a Huber colour + IoU loss on one frame, AD vs central
     FD (the FD reads the images of `frame_fn`, so only the gradient compiles anew)."""

@@ -300,6 +300,7 @@ def test_scene_fit_lm_needs_fewer_evaluations_than_adam():
 
 
 @pytest.mark.slow  # one compiled LM fit of a tiny scene
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_scene_fit_with_ties():
     import diffcloth as dc
     from diffcloth import config as cfg

@@ -101,6 +101,7 @@ def test_hanging_cloth_ball_no_point_inside_and_one_way_matches_rigid():
 
 
 @pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_gradient_of_ball_position_wrt_mass():
     state = physics.rest_state(NET_HANG)
     sim = physics.make_sim(1 / 60, num_substeps=4, gravity=(0.0, -9.81, 0.0))

@@ -76,13 +76,15 @@ def _check(integrator, num_frames):
 
 
 @pytest.mark.parametrize(
-    "integrator", ["symplectic", pytest.param("implicit", marks=pytest.mark.slow)]
+    "integrator",
+    ["symplectic", pytest.param("implicit", marks=[pytest.mark.slow, pytest.mark.gate])],
 )
 def test_material_gradients_short_rollout(integrator):
     _check(integrator, 6)
 
 
 @pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 @pytest.mark.parametrize("integrator", ["symplectic", "implicit"])
 def test_material_gradients_30_frames(integrator):
     _check(integrator, 30)

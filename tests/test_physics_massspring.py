@@ -109,6 +109,7 @@ def test_matches_warp_with_sphere_contact_and_friction_within_1cm():
 
 
 @pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_matches_warp_hanging_on_ground_displacement_rule_area_masses(dtype):
     """The other options: area lumping, the displacement friction rule, a plane, float32."""
@@ -265,6 +266,7 @@ def test_bad_values_and_the_implicit_integrator_are_refused():
 
 
 @pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_gradient_wrt_every_parameter_matches_central_differences():
     net = physics.grid_net(4, 4, (0.3, 0.3), center=(0.0, 0.5, 0.0), pinned="top_corners")
     sim = physics.make_sim(1 / 60, num_substeps=20, wind=(0.5, 0.0, 0.2))

@@ -533,7 +533,8 @@ def test_implicit_euler_never_gains_energy(dynamics):
 
 
 @pytest.mark.parametrize(
-    "integrator", ["implicit", pytest.param("symplectic_grad", marks=pytest.mark.slow)]
+    "integrator",
+    ["implicit", pytest.param("symplectic_grad", marks=[pytest.mark.slow, pytest.mark.gate])],
 )
 def test_rollout_gradient_matches_central_differences(dynamics, integrator):
     """A sheet pinned at two corners, touching a sphere from the start: the gradient of a

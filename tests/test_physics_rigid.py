@@ -315,6 +315,7 @@ def _central_fd(f, x, eps=1e-6):
 
 
 @pytest.mark.slow  # ~28 s (compile); the thruster-strength gradient test stays default
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_gradients_match_finite_differences():
     """d(final position) / d(mass, restitution, friction, drag, initial velocity): reverse mode
     against central differences in float64 (the contact substep is fixed within +-eps; the

@@ -42,6 +42,7 @@ def _traj_loss(base, mode):
 
 
 @pytest.mark.slow  # 18 s; the default test below checks forward == reverse on a small scan
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_forward_sensitivities_equal_reverse_and_central_fd_on_the_trajectory(base):
     p0 = {k: jnp.float64(v) for k, v in P0.items()}
     g_fwd = jax.jit(jax.grad(_traj_loss(base, "forward")))(p0)

@@ -66,6 +66,7 @@ def test_video_shape_and_range(small_scene):
 
 
 @pytest.mark.slow  # 45-70 s, nearly all compile (10-minute budget); CI's slow stage runs it
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_whole_pipeline_gradient_matches_finite_differences(small_scene, video_loss_and_grad):
     """d(video loss)/d(each material parameter), AD vs central FD in float64 (log-space steps)."""
     value_and_grad = video_loss_and_grad

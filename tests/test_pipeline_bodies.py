@@ -68,6 +68,7 @@ def test_body_params_without_bodies_and_bad_bodies_are_errors(ball_scene):
 
 
 @pytest.mark.slow  # ~35 s, mostly compiling the gradient of the coupled rollout + render
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_video_gradient_wrt_body_mass_and_restitution_matches_fd(ball_scene):
     target = jax.jit(pipeline.simulate_and_render)(
         ball_scene, {"body_mass": 0.3, "body_restitution": 0.8}

@@ -94,6 +94,7 @@ def test_sky_visibility_gradient_wrt_sphere_matches_fd():
 
 
 @pytest.mark.slow  # compiles the shadow-map rasterizer under grad (~30 s CPU)
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_sky_visibility_gradient_wrt_cloth_offset_matches_fd():
     """Ground ambient occlusion under a cloth square moving sideways: d/d(shift) vs FD."""
     pts, nrm = plane_points(-0.6, 0.6, -0.6, 0.6, 9)

@@ -210,6 +210,7 @@ def test_simulate_and_render_box_shadows_on_vs_off(box_scene, classes):
 
 
 @pytest.mark.slow  # a value-and-gradient compile of the shadowed render (~45 s CPU)
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_box_shadow_gradient_wrt_box_position_matches_fd(box_scene, classes):
     """d/d(box position) of a weighted image loss over the box's shadow edges on the plane and
     the cloth (penumbra: antialiased shadow-map coverage + bilinear PCF, so the edge moves

@@ -89,6 +89,7 @@ def test_box_pixels_use_the_sphere_material():
 
 
 @pytest.mark.slow  # ~10 s on the idle 2-core machine; runs with the slow tests
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_box_pose_gradient_matches_fd():
     cloth = _cloth(-0.3)
     w = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (N, N, 4)))

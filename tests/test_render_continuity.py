@@ -175,6 +175,7 @@ def check_case(shading: str, textures: str):
 
 
 @pytest.mark.slow  # one compile per case (~50 s CPU each on the shared machine)
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 @pytest.mark.parametrize("textures", ["default", "none"])
 @pytest.mark.parametrize("shading", render.SHADING_MODES)
 def test_video_gradient_equals_converged_fd_every_mode(shading, textures):

@@ -184,7 +184,8 @@ def _check_silhouette_gradient(base, faces, colors, camera, weights, moving, h=0
 
 
 @pytest.mark.parametrize(
-    "camera_fn", [pixel_camera, pytest.param(persp_camera, marks=pytest.mark.slow)]
+    "camera_fn",
+    [pixel_camera, pytest.param(persp_camera, marks=[pytest.mark.slow, pytest.mark.gate])],
 )  # perspective: 8 s
 def test_silhouette_gradient_translating_square(camera_fn):
     cam = camera_fn()

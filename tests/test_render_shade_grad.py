@@ -103,6 +103,7 @@ def test_reflect_refract_grad_s():
 
 
 @pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_reflect_refract_snell_grad_ior():
     fd_check(image_loss("reflect_refract", refraction="snell"), {"ior": jnp.asarray(0.8)})
 

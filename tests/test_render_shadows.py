@@ -288,6 +288,7 @@ def test_sphere_shadow_gradients_match_fd():
 
 
 @pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_cloth_shadow_gradients_match_fd():
     """Ground visibility under a cloth square (shadow map): d/d(light direction, cloth
     position); the shadow edge moves smoothly (antialiased map coverage + bilinear PCF)."""
@@ -368,6 +369,7 @@ def test_simulate_and_render_every_mode_with_shadows():
 
 
 @pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_render_gradients_through_shadows_match_fd():
     """Through `render`: a cloth square and a sphere (not drawn) shadow the drawn ground under a
     top-down camera; d(image loss)/d(light direction, sphere centre, cloth height) vs FD."""

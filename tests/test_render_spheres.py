@@ -109,6 +109,7 @@ def test_silhouette_gradients():
 
 
 @pytest.mark.slow  # ~19 s; the silhouette-gradient test stays in the default suite
+@pytest.mark.gate  # the gating slow tier (.ci/run)
 def test_composite_by_depth_and_occlusion_gradient():
     center, radius = jnp.array([-9.0, 2.0, 0.0]), jnp.asarray(5.0)
     img = scene(center, radius, -3.0)  # quad behind the sphere
