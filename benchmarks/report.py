@@ -38,10 +38,21 @@ def run(quick: bool) -> None:
 
 
 def read(name: str) -> list[dict]:
+    """The current lines of `results/<name>.jsonl`: a run whose meta line carries a "run" tag is
+    an earlier run kept for the figures the docs cite (benchmarks/README.md), and is skipped."""
     path = RESULTS / f"{name}.jsonl"
     if not path.exists():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    lines, kept = [], True
+    for line in path.read_text().splitlines():
+        if not line.strip():
+            continue
+        row = json.loads(line)
+        if row.get("bench") == "meta":
+            kept = "run" not in row
+        if kept:
+            lines.append(row)
+    return lines
 
 
 def _f(x, digits=3):
