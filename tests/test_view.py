@@ -7,11 +7,13 @@ skip, naming what is missing, without viser, playwright or a Chromium binary. In
     apt-get install -y chromium && pip install -e ".[view-test]"
 
 (or `python -m playwright install chromium` where playwright may download its own browser; set
-DIFFCLOTH_CHROMIUM=/path/to/chrome to pick a binary).
+DIFFCLOTH_CHROMIUM=/path/to/chrome to pick a binary). With DIFFCLOTH_REQUIRE_BROWSER=1, as in
+.ci/run, each of these skips fails instead.
 """
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import os
@@ -23,6 +25,26 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+# .ci/run sets DIFFCLOTH_REQUIRE_BROWSER=1: there a viewer test that would skip (no viser,
+# playwright or Chromium) fails instead, with the same message, so that CI cannot pass without them
+REQUIRE_BROWSER = os.environ.get("DIFFCLOTH_REQUIRE_BROWSER") == "1"
+
+
+def _skip(reason: str):
+    """pytest.skip, or pytest.fail with DIFFCLOTH_REQUIRE_BROWSER=1 (CI)."""
+    if REQUIRE_BROWSER:
+        pytest.fail(f"{reason} [DIFFCLOTH_REQUIRE_BROWSER=1: CI runs every viewer test]")
+    pytest.skip(reason)
+
+
+def _need(module: str, reason: str):
+    """pytest.importorskip, failing instead of skipping under DIFFCLOTH_REQUIRE_BROWSER=1."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        _skip(reason)
+
 
 # A small drape with a strongly red cloth (so cloth pixels are easy to find in screenshots), one
 # sphere and a floor; 12 frames keep the compile short.
@@ -142,7 +164,7 @@ def test_cli_view_without_the_extra_says_how_to_install(monkeypatch, capsys, sce
 
 
 def test_cli_view_export_and_bad_path(tmp_path, capsys, scene_path, model):
-    pytest.importorskip("viser", reason="the viewer needs the `view` extra: pip install viser")
+    _need("viser", "the viewer needs the `view` extra: pip install viser")
     from diffcloth import cli
 
     out = tmp_path / "rec.html"
@@ -278,14 +300,14 @@ def _chromium() -> str | None:
 
 @pytest.fixture(scope="module")
 def browser():
-    pytest.importorskip("viser", reason="the viewer needs the `view` extra: pip install viser")
-    pw = pytest.importorskip(
-        "playwright.sync_api", reason="browser tests need playwright: pip install -e '.[view-test]'"
+    _need("viser", "the viewer needs the `view` extra: pip install viser")
+    pw = _need(
+        "playwright.sync_api", "browser tests need playwright: pip install -e '.[view-test]'"
     )
     exe = _chromium()
     with pw.sync_playwright() as p:
         if exe is None and not Path(p.chromium.executable_path).exists():
-            pytest.skip(
+            _skip(
                 "no Chromium found: apt-get install -y chromium (or set DIFFCLOTH_CHROMIUM, or "
                 "python -m playwright install chromium)"
             )
