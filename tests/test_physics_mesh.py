@@ -416,11 +416,13 @@ def test_equilibrium_gradient_matches_central_differences(static_gradient):
     rng = np.random.default_rng(4)
     pinned = np.asarray(cloth.pinned)[:, None]
     d = jnp.asarray(np.where(pinned, rng.normal(size=cloth.rest.shape), 0.0))
-    fd = _central(lambda s: float(fn(fabric, cloth.rest + s * d, cols)[0][0]), 0.0, 1.0, 1e-6)
+    # steps of 1e-5 m (not 1e-6): the solve stops anywhere below its force tolerance, and at
+    # 1e-6 that spread is ~1e-4 of the difference; no vertex enters or leaves the contact layer
+    fd = _central(lambda s: float(fn(fabric, cloth.rest + s * d, cols)[0][0]), 0.0, 1.0, 1e-5)
     errors["x_pins"] = abs(float(jnp.sum(g_pins * d)) - fd) / abs(fd)
     dc = jnp.asarray(rng.normal(size=(1, 3)))
     move = lambda s: dataclasses.replace(cols, sphere_center=cols.sphere_center + s * dc)
-    fd = _central(lambda s: float(fn(fabric, cloth.rest, move(s))[0][0]), 0.0, 1.0, 1e-6)
+    fd = _central(lambda s: float(fn(fabric, cloth.rest, move(s))[0][0]), 0.0, 1.0, 1e-5)
     errors["sphere_center"] = abs(float(jnp.sum(g_cols.sphere_center * dc)) - fd) / abs(fd)
     print({k: f"{v:.1e}" for k, v in errors.items()})
     assert max(errors.values()) < 1e-4, errors

@@ -22,6 +22,7 @@ from diffcloth.physics.mesh.colliders import (
     make_mesh_colliders,
     signed_distance,
 )
+from diffcloth.physics.mesh.dynamics import implicit_step, mesh_rollout, symplectic_step
 from diffcloth.physics.mesh.energy import (
     bending_energy,
     curvatures,
@@ -57,10 +58,7 @@ from diffcloth.physics.mesh.solve import (
     SolverSettings,
     check_equilibrium,
     equilibrium,
-    implicit_step,
-    mesh_rollout,
     potential,
-    symplectic_step,
 )
 from diffcloth.physics.mesh.surface import DisplayMesh, cloth_surface, display_mesh, texture_uv
 from diffcloth.physics.mesh.topology import ClothMesh, make_cloth, pin_mask

@@ -176,6 +176,10 @@ def _factor_now(h: np.ndarray, nbr: np.ndarray, free: np.ndarray) -> int:
     vals = h.reshape(-1)[pat.ell].astype(np.float64)
     data = np.bincount(pat.slot, weights=vals, minlength=pat.nnz)
     data = 0.5 * (data + data[pat.mirror])  # symmetric part (float32 assembly is not exact)
+    # factored in the system's own precision: float32 halves the factor's memory traffic (a
+    # 2,846-vertex drape: ~0.7x the float64 time); the Krylov iterations it preconditions, on
+    # the exact Hessian, make up for its rounding
+    data = data.astype(np.float32 if h.dtype == np.float32 else np.float64)
     lu = None
     if pat.size and np.all(np.isfinite(data)):
         a = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.size, pat.size))
@@ -188,17 +192,17 @@ def _factor_now(h: np.ndarray, nbr: np.ndarray, free: np.ndarray) -> int:
         lu = "identity"
     token = _NEXT[0]
     _NEXT[0] += 1
-    _FACTORS[token] = (lu, pat)
+    _FACTORS[token] = (lu, pat, data.dtype)
     while len(_FACTORS) > _KEEP:
         _FACTORS.pop(next(iter(_FACTORS)))
     return token
 
 
 def _solve_now(token: int, rhs: np.ndarray) -> np.ndarray:
-    lu, pat = _FACTORS.get(token, (None, None))
+    lu, pat, dtype = _FACTORS.get(token, (None, None, None))
     if lu is None:
         return np.full(rhs.shape, np.nan, rhs.dtype)
-    z = rhs.astype(np.float64).reshape(-1)  # pinned rows: the identity
+    z = rhs.astype(dtype).reshape(-1)  # pinned rows: the identity
     if pat.size:
         z[pat.dofs] = lu.solve(z[pat.dofs])
     return z.reshape(rhs.shape).astype(rhs.dtype)

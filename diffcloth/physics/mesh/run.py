@@ -17,7 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth.physics.mesh.solve import SolverSettings, equilibrium, mesh_rollout
+from diffcloth.physics.mesh.dynamics import mesh_rollout
+from diffcloth.physics.mesh.solve import SolverSettings, equilibrium
 from diffcloth.physics.mesh.topology import ClothMesh
 from diffcloth.physics.state import ClothState
 
@@ -34,7 +35,7 @@ __all__ = [
 
 #: [sim] mode of a mesh cloth: "dynamic" (a rollout over frames) or "equilibrium" (the rest shape)
 MESH_MODES = ("dynamic", "equilibrium")
-#: integrators of the dynamic mode (`solve.mesh_rollout`)
+#: integrators of the dynamic mode (`dynamics.mesh_rollout`)
 MESH_INTEGRATORS = ("implicit", "symplectic")
 
 
@@ -144,7 +145,7 @@ def mesh_trajectory(
 ) -> tuple[ClothState, MeshStatus]:
     """The run of a mesh cloth: (trajectory, status).
 
-    Dynamic: `solve.mesh_rollout` over num_frames frames of sim.dt (a non-converged implicit
+    Dynamic: `dynamics.mesh_rollout` over num_frames frames of sim.dt (a non-converged implicit
     step is already NaN). Equilibrium: one frame, the rest shape reached from state.x (pins held
     there; `solve.equilibrium`), v = 0; NaN unless the solve converged.
     Shapes: state x, v (n, 3) -> trajectory x, v (T, n, 3), T = num_frames (dynamic) or 1.

@@ -1,5 +1,5 @@
-"""Solvers of the mesh cloth: the static equilibrium (the shape at rest), implicit Euler and
-symplectic Euler steps, and a rollout.
+"""Solvers of the mesh cloth: the static equilibrium (the shape at rest) and the Newton
+minimisation that implicit Euler (`dynamics.implicit_step`) shares with it.
 
 Equilibrium: minimise the total potential Pi(x) = membrane + bending + gravity + contact over
 the free vertices with a damped Newton method (Levenberg-Marquardt in the mass metric): each
@@ -30,7 +30,6 @@ from diffcloth.physics.mesh import energy, hessian, linsolve
 from diffcloth.physics.mesh.fabric import Fabric
 from diffcloth.physics.mesh.linsolve import _block_jacobi, _cg
 from diffcloth.physics.mesh.topology import ClothMesh
-from diffcloth.physics.state import ClothState
 
 __all__ = [
     "EquilibriumResult",
@@ -38,10 +37,7 @@ __all__ = [
     "SolverSettings",
     "check_equilibrium",
     "equilibrium",
-    "implicit_step",
-    "mesh_rollout",
     "potential",
-    "symplectic_step",
 ]
 
 
@@ -79,6 +75,11 @@ class SolverSettings:
         over the model's: mu x0.25 if a rho >= 0.75, kept if >= 0.25, else x2; rejections: x2, x4,
         x8, ..., from 1 at least) or "fixed" (x0.25 on acceptance, x8 on rejection).
         line_search=1, mu_update="fixed", krylov_forcing=False: the solver before 2026-11-28.
+      refactor_every: with "direct", the Hessian approximation is assembled and factored on
+        every this many Newton steps, and sooner when the last Krylov solve took over half of
+        krylov_iters or a step was rejected; between, the last factorization preconditions
+        (the Krylov iterations run on the exact Hessian, so a stale one costs iterations, not
+        accuracy). 1: every step.
     """
 
     max_iters: int = dataclasses.field(default=200, metadata={"static": True})
@@ -91,6 +92,7 @@ class SolverSettings:
     krylov_forcing: bool = dataclasses.field(default=True, metadata={"static": True})
     line_search: int = dataclasses.field(default=3, metadata={"static": True})
     mu_update: str = dataclasses.field(default="ratio", metadata={"static": True})
+    refactor_every: int = dataclasses.field(default=5, metadata={"static": True})
 
 
 class EquilibriumResult(NamedTuple):
@@ -199,28 +201,34 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         return jnp.where(jnp.isfinite(r), r, jnp.inf)
 
     def cond(c):
-        x, e, g, mu, nu, eta, k, res = c
+        x, e, g, mu, nu, eta, k, res, _, _ = c
         return (k < st.max_iters) & (res > tol) & jnp.isfinite(e) & (mu < 1e14)
 
-    def body(c):
-        x, e, g, mu, nu, eta, k, res = c
+    def factor(x, mu):
         hmat = _hessian(problem, x, theta)
         hmat = hmat.at[:, 0].add((mu * mass)[:, None, None] * eye[None])
-        apply_a = lambda p: hessian.matvec(cloth, hmat, p * fmask) * fmask
+        return linsolve.factor(hmat, cloth.neighbors, free)
+
+    def body(c):
+        x, e, g, mu, nu, eta, k, res, token, fresh = c
         if st.linear_solver == "direct":
             # Newton-Krylov: CG on the exact Hessian (+ mu M), preconditioned by the LU of the
-            # PSD approximation; at negative curvature, the approximation's own step
-            token = linsolve.factor(hmat, cloth.neighbors, free)
+            # PSD approximation (refactored as `refactor_every` says); at negative curvature,
+            # the approximation's own step
+            token = jax.lax.cond(fresh, lambda: factor(x, mu), lambda: token)
             pre = lambda r: linsolve.solve(token, r) * fmask
             hvp = lambda p: jax.jvp(grad_fn, (x,), (p,))[1]
             exact = lambda p: (hvp(p * fmask) + mu * mass[:, None] * p) * fmask
-            p, ok, _ = _cg(exact, -g, pre, st.krylov_iters, eta)
+            p, ok, kry = _cg(exact, -g, pre, st.krylov_iters, eta)
             p = jnp.where(ok, p, pre(-g))
             ok = jnp.all(jnp.isfinite(p))
             p = jnp.where(ok, p, 0.0)
         else:
+            hmat = _hessian(problem, x, theta)
+            hmat = hmat.at[:, 0].add((mu * mass)[:, None, None] * eye[None])
+            apply_a = lambda p: hessian.matvec(cloth, hmat, p * fmask) * fmask
             pre = _block_jacobi(hessian.block_diagonal(hmat), free)
-            p, ok, _ = _cg(apply_a, -g, pre, st.cg_iters, st.cg_tol)
+            p, ok, kry = _cg(apply_a, -g, pre, st.cg_iters, st.cg_tol)
         p = p * fmask
         gp = jnp.minimum(jnp.vdot(g, p), 0.0)  # the model's slope along p
         e_all = jax.vmap(lambda a: total(x + a * p))(alphas)
@@ -248,7 +256,9 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
             drop = jnp.vdot(g_new, g_new) / jnp.maximum(jnp.vdot(g, g), jnp.finfo(x0.dtype).tiny)
             eta_new = jnp.maximum(0.9 * drop, jnp.where(0.9 * eta**2 > 0.1, 0.9 * eta**2, 0.0))
             eta = jnp.where(accept, jnp.clip(eta_new, st.cg_tol, 0.5), eta)
-        return x, e, g_new, mu_new, nu, eta, k + 1, residual(g_new)
+        fresh = (((k + 1) % max(st.refactor_every, 1)) == 0) | ~accept
+        fresh = fresh | (2 * kry > st.krylov_iters)
+        return x, e, g_new, mu_new, nu, eta, k + 1, residual(g_new), token, fresh
 
     g0 = grad_fn(x0) * fmask
     eps = jnp.finfo(x0.dtype).eps
@@ -263,8 +273,8 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     slack = jax.lax.stop_gradient(16.0 * eps * scale)
     mu0, eta0 = problem.mu0, max(st.cg_tol, 0.5) if st.krylov_forcing else st.cg_tol
     init = (x0, total(x0), g0, *(jnp.asarray(v, x0.dtype) for v in (mu0, 2.0, eta0)), 0,
-            residual(g0))  # fmt: skip
-    x, e, g, mu, nu, eta, k, res = jax.lax.while_loop(cond, body, init)
+            residual(g0), jnp.int32(0), jnp.array(True))  # fmt: skip
+    x, e, g, mu, nu, eta, k, res, _, _ = jax.lax.while_loop(cond, body, init)
     conv = (res <= tol) & jnp.all(jnp.isfinite(x))
     return EquilibriumResult(x=_place(theta, x), converged=conv, iterations=k, residual=res,
                              energy=e)  # fmt: skip
@@ -380,7 +390,7 @@ def check_equilibrium(result: EquilibriumResult, what: str = "equilibrium") -> E
 
 
 # ---------------------------------------------------------------------------------------------
-# dynamics
+# the implicit step's friction (dynamics.py builds the step)
 
 
 def _friction_energy(colliders, x, x_prev, area, free, friction, eps):
@@ -396,105 +406,4 @@ def _friction_energy(colliders, x, x_prev, area, free, friction, eps):
     return jnp.sum(jnp.where(free & (pen > 0), friction * colliders.friction * lam * slide, 0.0))
 
 
-def _project_out(colliders, x, v):
-    """Move vertices found inside a collider back to its surface and remove their inward
-    velocity (a safety net: the penalty keeps them in the contact layer)."""
-    if not mc.has_colliders(colliders):
-        return x, v
-    phi = mc.signed_distance(colliders, x)
-    n = mc.contact_normals(colliders, x)
-    inside = (phi < 0)[:, None]
-    x = jnp.where(inside, x - phi[:, None] * n, x)
-    vn = jnp.sum(v * n, axis=-1, keepdims=True)
-    v = jnp.where(inside & (vn < 0), v - vn * n, v)
-    return x, v
-
-
 _FRICTION_EPS = 1e-5  # m: tangential slip below which friction is smoothed (static regime)
-
-
-def implicit_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None, colliders=None,
-                  settings: SolverSettings = SolverSettings(max_iters=30)) -> ClothState:  # fmt: skip
-    """One implicit (backward) Euler step of length h (s): minimises the incremental potential
-    (module docstring) by Newton; differentiable by the implicit function theorem. Pinned
-    vertices keep their state. Non-convergence shows as non-finite positions (NaN), which the
-    rollout's checks report.
-    Shapes: state leaves (n, 3) m and m/s -> ClothState with (n, 3) leaves; h () s.
-    """
-    x_n, v_n = state.x, state.v
-    dtype = x_n.dtype
-    theta = {
-        "cloth": cloth,
-        "fabric": fabric,
-        "colliders": colliders,
-        "gravity": jnp.asarray(gravity, dtype),
-        "x_pins": x_n,
-        "free": ~cloth.pinned,
-        "h": jnp.asarray(h, dtype),
-        "x_n": x_n,
-        "v_n": v_n,
-        "wind": jnp.zeros(3, dtype) if wind is None else jnp.asarray(wind, dtype),
-        "el_prev": energy.elastic_energy(cloth, fabric, x_n),
-        "g_prev": jax.grad(lambda y: energy.elastic_energy(cloth, fabric, y))(x_n),
-    }
-    problem = _Problem("implicit", settings, 0.0, mc.has_colliders(colliders))
-    res = _argmin(problem, theta, jax.lax.stop_gradient(x_n + h * v_n))
-    free = ~cloth.pinned
-    x = jnp.where(res.converged, res.x, jnp.nan)
-    v = jnp.where(free[:, None], (x - x_n) / h, v_n)
-    x, v = _project_out(colliders, x, v)
-    x = jnp.where(free[:, None], x, x_n)
-    return ClothState(x=x, v=v)
-
-
-def symplectic_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None,
-                    colliders=None) -> ClothState:  # fmt: skip
-    """One symplectic (semi-implicit) Euler step of length h (s); stable for h below about
-    sqrt(m / k) of the stiffest element (small steps only).
-    Shapes: state leaves (n, 3) m and m/s -> ClothState with (n, 3) leaves; h () s.
-    """
-    free = ~cloth.pinned
-    mass = energy.vertex_mass(cloth, fabric)
-    wind = jnp.zeros(3, state.x.dtype) if wind is None else wind
-    force = -jax.grad(lambda y: potential(cloth, fabric, y, gravity, colliders))(state.x)
-    # Rayleigh damping: -damping K v as a directional derivative of the elastic force
-    kv = jax.jvp(jax.grad(lambda y: energy.elastic_energy(cloth, fabric, y)), (state.x,),
-                 (state.v,))[1]  # fmt: skip
-    force = (
-        force
-        - fabric.damping * kv
-        - fabric.drag * cloth.vertex_area[:, None] * (state.v - wind[None, :])
-    )
-    v = state.v + h * force / jnp.maximum(mass, 1e-30)[:, None]
-    v = jnp.where(free[:, None], v, state.v)
-    x = state.x + h * v
-    x, v = _project_out(colliders, x, v)
-    x = jnp.where(free[:, None], x, state.x)
-    return ClothState(x=x, v=v)
-
-
-def mesh_rollout(cloth, fabric, state: ClothState, *, dt, num_frames: int, num_substeps: int = 1,
-                 integrator: str = "implicit", gravity, wind=None, colliders=None,
-                 settings: SolverSettings = SolverSettings(max_iters=20)) -> ClothState:  # fmt: skip
-    """The trajectory: ClothState with leaves (num_frames, n, 3), frame k being the state after
-    k + 1 frames of dt seconds (num_substeps steps each). lax.scan with a checkpointed body."""
-    h = dt / num_substeps
-    if integrator == "implicit":
-        step = lambda s: implicit_step(cloth, fabric, s, h, gravity=gravity, wind=wind,
-                                       colliders=colliders, settings=settings)  # fmt: skip
-    elif integrator == "symplectic":
-        step = lambda s: symplectic_step(cloth, fabric, s, h, gravity=gravity, wind=wind,
-                                         colliders=colliders)  # fmt: skip
-    else:
-        raise ValueError(f"integrator must be 'implicit' or 'symplectic', got {integrator!r}")
-
-    @jax.checkpoint
-    def frame(s, _):
-        s = (
-            jax.lax.fori_loop(0, num_substeps, lambda i, c: step(c), s)
-            if num_substeps > 1
-            else step(s)
-        )
-        return s, s
-
-    return jax.lax.scan(frame, state, length=num_frames)[1]
