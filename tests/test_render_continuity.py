@@ -175,8 +175,9 @@ def check_case(shading: str, textures: str):
 
 
 @pytest.mark.slow  # one compile per case (~50 s CPU each on the shared machine)
-@pytest.mark.gate  # the gating slow tier (.ci/run)
-@pytest.mark.parametrize("textures", ["default", "none"])
+# the gating slow tier (.ci/run): every mode with the default textures (the untextured cases,
+# as long again, stay in the reported slow tests)
+@pytest.mark.parametrize("textures", [pytest.param("default", marks=pytest.mark.gate), "none"])
 @pytest.mark.parametrize("shading", render.SHADING_MODES)
 def test_video_gradient_equals_converged_fd_every_mode(shading, textures):
     check_case(shading, textures)
