@@ -318,7 +318,10 @@ def _argmin_jvp(problem, primals, tangents):
         pre = lambda r: jnp.where(fmask, block(r), r)
 
     def solve(mv, b):
-        z, _, _ = _cg(mv, b, pre, 4 * problem.settings.cg_iters, 1e-10)
+        # to 1e-10 in float64; float32 cannot resolve that and would spend every iteration on
+        # rounding noise: 8 eps (~1e-6) there
+        rtol = max(1e-10, 8.0 * float(jnp.finfo(b.dtype).eps))
+        z, _, _ = _cg(mv, b, pre, 4 * problem.settings.cg_iters, rtol)
         return z
 
     x_dot = jax.lax.custom_linear_solve(matvec, -rhs, solve, symmetric=True)
