@@ -23,6 +23,7 @@ __all__ = ["FitSettings", "check_devices", "parse_fit", "run_fit_config", "video
 _METHOD_NAMES = {
     "lm": "Levenberg-Marquardt (optimistix, forward-mode Jacobians, coarse-to-fine stages)",
     "adam": "Adam (optax)",
+    "staged": "staged Levenberg-Marquardt (free sets and scans stage by stage, then all)",
 }
 
 

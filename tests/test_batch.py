@@ -43,8 +43,8 @@ SHARDED_SCRIPT = textwrap.dedent(
     assert len(out.sharding.device_set) == 4, out.sharding
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=1e-6)
 
-    # fit_multistart(devices=4): the starts are sharded, the fit equals the one-device fit
-    from diffcloth.fit import fit_multistart
+    # engines.adam_multistart(devices=4): the starts are sharded, equal to the one-device fit
+    from diffcloth.fit.engines import adam_multistart as fit_multistart
     loss = lambda q: (jnp.log(q["k"]) - 0.7) ** 2 + 0.1 * jnp.sin(3.0 * q["k"]) ** 2
     inits = [{"k": v} for v in (0.5, 1.0, 2.0, 4.0)]
     kw = dict(steps=25, learning_rate=0.1, progress=False, patience=None)

@@ -267,8 +267,9 @@ def test_scene_fit_lm_needs_fewer_evaluations_than_adam():
     targets = dc.fit.make_targets(sc, TRUTH)
     init = {"bend": 1e-3, "drag_normal": 0.6}
     lm = dc.fit.fit(
-        sc, targets, ["bend", "drag_normal"], steps=30, init=init, loss="pyramid", progress=False
-    )
+        sc, targets, ["bend", "drag_normal"], steps=30, init=init, loss="pyramid", method="lm",
+        progress=False,
+    )  # fmt: skip
     adam = dc.fit.fit(
         sc,
         targets,
@@ -315,6 +316,7 @@ def test_scene_fit_with_ties():
         steps=30,
         init={"stretch": 25.0},
         loss="pyramid",
+        method="lm",
         progress=False,
         ties={"shear": "stretch", "bend": "1e-4 * stretch"},
     )

@@ -63,7 +63,7 @@ def test_lm_video_matches_simulate_and_render_and_the_fit_reuses_its_step(tmp_pa
     try:
         result = dcfit.fit(
             sc, video, ["bend", "drag_normal"], 1, init={"bend": 1e-3, "drag_normal": 0.5},
-            loss="pyramid", progress=False,
+            loss="pyramid", progress=False, method="lm",
         )  # fmt: skip
     finally:
         jax.config.update("jax_log_compiles", prev)

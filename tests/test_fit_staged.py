@@ -137,6 +137,7 @@ def test_scene_fit_with_a_staged_schedule():
         steps=30,
         init={"bend": 5e-4, "drag_normal": 0.5},
         progress=False,
+        method="lm",
         stages=[
             {"frames": 0.5, "free": ["drag_normal"]},
             {"free": ["bend"], "scan": {"bend": [1.0, 2.0, 4.0, 8.0]}},

@@ -100,6 +100,7 @@ def test_small_fit_recovers_bending_stiffness(small_scene):
         ["bend"],
         steps=40,
         init={"bend": 5e-3},
+        method="lm",
         learning_rate=0.15,
         patience=None,
         progress=False,

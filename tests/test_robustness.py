@@ -433,7 +433,8 @@ def _image_loss(p, target):
 
 
 def test_row_26_fit_params_targets_wrong_shape_dtype_or_nan():
-    from diffcloth.fit import fit_params, image_loss
+    from diffcloth.fit import image_loss
+    from diffcloth.fit.engines import adam as fit_params
 
     kw = dict(steps=3, learning_rate=0.1, progress=False)
     init = {"level": 0.3}
@@ -498,7 +499,7 @@ def test_row_30_one_diverging_element_keeps_others_and_their_gradients():
 
 def test_row_31_mismatched_batch_sizes_in_multistart_and_sharding():
     from diffcloth import batch
-    from diffcloth.fit import fit_multistart
+    from diffcloth.fit.engines import adam_multistart as fit_multistart
 
     loss = lambda p: (p["a"] - 1.0) ** 2 + (p["b"] - 2.0) ** 2
     with pytest.raises(ValueError, match=r"leading sizes \{'a': 3, 'b': 2\}"):

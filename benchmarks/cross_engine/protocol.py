@@ -11,7 +11,7 @@ Per case (scene x stiffness regime), through diffcloth's public API only:
    k_shear = 25, k_flex = 5 N/m, air damping 0.002 N s/m; dashpots, density and friction at the
    model's defaults (the truth uses other dashpots). Simulated in float64 (`--float32` to
    compare): in float32 the round-off alone moves the draped cloth enough to make the loss jump.
-2. Fit on the first `fit_frames` frames (two thirds) with `diffcloth.fit.staged.fit_staged`
+2. Fit on the first `fit_frames` frames (two thirds) with `diffcloth.fit.engines.staged`
    (Levenberg-Marquardt stages, coarse to fine in the parameters and in time): air damping alone
    on the free fall (the first 35 % of the fitting frames, simulated alone); then a scan of the
    stiffness scale over 1/16 .. 16 x the guess (shear and flexion tied to k_struct at the guess's
@@ -245,8 +245,9 @@ def run_fit(case, data, n_fit, args, log_fn):
     3. with `--untie`, LM over all four on all fitting frames.
     Returns (fitted, wall_s, method, evaluations)."""
     from diffcloth.fit.constraints import Positive
+    from diffcloth.fit.engines import ParamStage
+    from diffcloth.fit.engines import staged as fit_staged
     from diffcloth.fit.settings import FitSettings
-    from diffcloth.fit.staged import ParamStage, fit_staged
 
     dtype = np.float64 if args.x64 else np.float32
     kw = dict(size=args.size, stride=args.stride, level=args.level, dtype=dtype)

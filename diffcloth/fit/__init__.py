@@ -1,10 +1,15 @@
-"""diffcloth.fit: image losses, parameter constraints, the optax loop, identifiability.
+"""diffcloth.fit: one front door, `fit(scene, targets, free=[...], method="auto")`, and its parts.
 
-The scene-level `fit(scene, targets, free=[...])` is built on these by the pipeline. Engines:
-`fit_params` (optax), `fit_lm` (Levenberg-Marquardt on residuals), `fit_staged` (staged LM with
-free subsets and scans).
+`fit` runs every engine and schedule on a scene: method "auto" (the default: float64 with
+contact, a scan when the start is far, coarse-to-fine Levenberg-Marquardt), "lm", "staged" or
+"adam"; the result's summary names the knob to turn when a fit stalls. The engines themselves
+(`engines.lm`, `engines.adam`, `engines.staged`, ...) fit any JAX function of a parameter dict.
+Also here: image, footage and silhouette losses, constraints, ties, identifiability.
 """
 
+import warnings as _warnings
+
+from diffcloth.fit import engines
 from diffcloth.fit.constraints import (
     Bounded,
     Constraint,
@@ -24,16 +29,14 @@ from diffcloth.fit.footage import (
     scene_loss,
     scene_residuals,
 )
+from diffcloth.fit.front import fit
 from diffcloth.fit.identifiability import Identifiability, format_identifiability, identifiability
 from diffcloth.fit.interrupt import catch_interrupts
-from diffcloth.fit.lm import fit_lm, fit_lm_multistart
 from diffcloth.fit.loop import (
     FitResult,
     History,
     MultiStartResult,
     default_optimizer,
-    fit_multistart,
-    fit_params,
     load_checkpoint,
     pack_tree,
     save_checkpoint,
@@ -62,22 +65,19 @@ from diffcloth.fit.robust import ROBUST_KINDS, robust_residuals, robust_rho
 from diffcloth.fit.scene_fit import (
     LOSSES,
     default_constraint,
-    fit,
     make_targets,
     scene_identifiability,
     video_loss,
 )
 from diffcloth.fit.settings import FitSettings
-from diffcloth.fit.staged import ParamStage, StagedResult, fit_staged
+from diffcloth.fit.staged import ParamStage, StagedResult
 from diffcloth.fit.ties import Ties, parse_ties
 
 __all__ = [
+    "engines",
     "FitSettings",
     "ParamStage",
     "StagedResult",
-    "fit_lm",
-    "fit_lm_multistart",
-    "fit_staged",
     "Ties",
     "parse_ties",
     "FootageLoss",
@@ -115,8 +115,6 @@ __all__ = [
     "charbonnier_error",
     "default_optimizer",
     "downsample",
-    "fit_multistart",
-    "fit_params",
     "format_identifiability",
     "gaussian_pyramid",
     "identifiability",
@@ -134,3 +132,17 @@ __all__ = [
     "to_raw",
     "validate_targets",
 ]
+
+
+def __getattr__(name: str):
+    """The engine names this package used to export: still there, with a DeprecationWarning."""
+    if name in engines.RENAMED:
+        new = engines.RENAMED[name]
+        _warnings.warn(
+            f"diffcloth.fit.{name} is deprecated: use diffcloth.fit.fit(scene, targets, free=..., "
+            f"method=...) for a scene, or diffcloth.fit.engines.{new} for your own function",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(engines, new)
+    raise AttributeError(f"module 'diffcloth.fit' has no attribute {name!r}")

@@ -174,6 +174,6 @@ def scene_residuals(params, scene, targets: FootageTargets, spec: FootageLoss, f
 
 
 def scene_loss(params, scene, targets: FootageTargets, spec: FootageLoss, frame_weights=None):
-    """sum(scene_residuals(...) ** 2): the scalar footage loss, for Adam (`fit_params`)."""
+    """sum(scene_residuals(...) ** 2): the scalar footage loss, for Adam (`engines.adam`)."""
     r = scene_residuals(params, scene, targets, spec, frame_weights)
     return jnp.sum(r * r)

@@ -53,7 +53,10 @@ class FitResult:
     set, e.g. by Ctrl-C; a checkpoint to resume from was written when checkpoint_path was given).
     message: a one-line explanation.
     last_finite: physical parameters of the last evaluation with a finite loss and gradient.
-    method: "adam" or "lm" (`diffcloth.fit.lm`). evaluations: loss + derivative evaluations.
+    method: "adam", "lm" (`diffcloth.fit.lm`) or "staged". evaluations: loss + derivative
+    evaluations. auto: what the front door's rules decided (`diffcloth.fit.auto`: x64, the scans
+    and whether the start was far). hints: the knobs to turn when the fit stalled (one line each,
+    also in `summary()`).
     """
 
     params: dict[str, np.ndarray]
@@ -71,6 +74,8 @@ class FitResult:
     method: str = "adam"
     evaluations: int | None = None  # loss(+derivative) evaluations; None: len(history)
     stages: list[dict] | None = None  # LM coarse-to-fine stages (name, steps, loss, status)
+    auto: dict | None = None
+    hints: list[str] = dataclasses.field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -79,15 +84,17 @@ class FitResult:
 
     def summary(self) -> str:
         vals = ", ".join(f"{k}={_fmt(v)}" for k, v in self.params.items())
-        return (
+        text = (
             f"{self.status}: loss {self.loss:.4g} after {self.iterations} steps "
             f"in {self.wall_s:.1f} s; {vals}"
         )
+        return "".join([text] + [f"\n  hint: {h}" for h in self.hints])
 
 
 @dataclasses.dataclass
 class MultiStartResult:
-    """Outcome of `fit_multistart`: one FitResult per start and the index of the best one."""
+    """Outcome of `engines.adam_multistart` / `engines.lm_multistart`: one FitResult per start
+    and the index of the best one."""
 
     results: list[FitResult]
     best_index: int

@@ -1,13 +1,12 @@
-"""Scene-level fitting: named scene parameters -> rendered video -> image loss -> optax.
-
-    result = dc.fit.fit(scene, targets, free=["stretch", "bend"], steps=100)
+"""Scene-level fitting helpers: the losses and residuals of a scene's video, the engine choice,
+the staged schedule, identifiability. The front door `fit` is `diffcloth.fit.front`.
 
 Where the stages meet: this module calls `diffcloth.pipeline`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import jax
@@ -15,13 +14,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffcloth.fit.constraints import Bounded, Identity, Positive
-from diffcloth.fit.loop import fit_multistart, fit_params
-from diffcloth.fit.losses import as_target_array, image_loss, pyramid_loss, validate_targets
+from diffcloth.fit.losses import image_loss, pyramid_loss
 
 __all__ = [
     "LOSSES",
     "default_constraint",
-    "fit",
+    "recipe_stages",
     "make_targets",
     "scene_identifiability",
     "video_loss",
@@ -117,18 +115,20 @@ LM_LOSSES = ("l2", "pyramid")  # losses that are a sum of squares (what LM can f
 
 
 def choose_method(method: str, loss: str, num_scalars: int, optimizer=None) -> str:
-    """ "lm" or "adam" for method "auto": LM for a least-squares loss, <= 16 scalar parameters and
-    no custom optax optimizer; otherwise Adam. Explicit "lm" with a loss LM cannot fit raises."""
+    """The engine: "lm" or "adam" for method "auto" (LM for a least-squares loss, <= 16 scalar
+    parameters and no custom optax optimizer; otherwise Adam), "staged" for "staged". Explicit
+    "lm" or "staged" with a loss LM cannot fit raises."""
     from diffcloth.fit.settings import LM_MAX_PARAMS, METHODS
 
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if method == "lm":
+    if method in ("lm", "staged"):
         if loss not in LM_LOSSES:
             raise ValueError(
-                f"method 'lm' fits least-squares losses {LM_LOSSES}; loss {loss!r} needs 'adam'"
+                f"method {method!r} fits least-squares losses {LM_LOSSES}; loss {loss!r} needs "
+                "'adam'"
             )
-        return "lm"
+        return method
     if method == "adam":
         return "adam"
     if loss in LM_LOSSES and num_scalars <= LM_MAX_PARAMS and optimizer is None:
@@ -157,160 +157,23 @@ def _lm_stages(scene, loss: str, schedule):
     return args, names, levels, priors
 
 
-def fit(
-    scene,
-    targets,
-    free: Sequence[str],
-    steps: int | None = None,
-    optimizer=None,
-    *,
-    init: Mapping[str, Any] | None = None,
-    constraints: Mapping[str, Any] | None = None,
-    loss: str = "l2",
-    method: str | None = None,
-    ties: Mapping[str, Any] | None = None,
-    stages=None,
-    settings=None,
-    **fit_kwargs,
-):
-    """Fit the named scene parameters to target videos.
+def recipe_stages(init: Mapping[str, Any], cons: Mapping[str, Any]) -> list[dict]:
+    """The staged recipe's stages for these free values (method "staged" without `stages`):
+    air resistance alone on the first 35 % of the frames (when there is something else to fit),
+    then a scan of the stiffest positive scalar over 1/16..16x and LM over everything on the
+    first half; the final stage (all frames) follows."""
+    from diffcloth.fit.auto import _FIRST, SCAN_FACTORS, scan_candidates
 
-    Args:
-      scene: a `diffcloth.Scene`.
-      targets: (cameras, T, H, W, C) video, or (T, H, W, C) for a single camera; float in [0, 1]
-        or uint8 (divided by 255). Checked against `scene.video_shape` before any compilation.
-      free: names of the parameters to fit (see `diffcloth.pipeline.PARAMETERS`).
-      steps: maximum optimizer steps (default 100; LM: steps of the final stage).
-      optimizer: an optax transformation (Adam only; giving one makes method "auto" pick Adam).
-      init: initial physical values (default: the scene's own values).
-      constraints: name -> constraint (default `default_constraint(name)`).
-      loss: "l2", "l1" or "pyramid" (multi-scale, wider basin of convergence).
-      method: "auto" (default: Levenberg-Marquardt for l2/pyramid losses and <= 16 scalar
-        parameters, else Adam), "lm" or "adam". The result's `.method` says which ran.
-      ties: {name: "other" | "c * other"} tied parameters (`diffcloth.fit.ties`): not optimised,
-        set from their source (which must be free) at every evaluation; reported in the result.
-      stages: LM coarse-to-fine stages (`diffcloth.fit.schedule.make_schedule`: None = default,
-        "none", or a list of {"min_level", "frames"}).
-      settings: a `FitSettings`; the keyword arguments below override its fields.
-      multistart, spread, seed, devices (in fit_kwargs or settings): number of initial guesses
-        fitted at once with `vmap` (extra guesses are the initial values times
-        exp(spread * N(0, 1)) for positive parameters), the best kept; devices shards them.
-      fit_kwargs: any other `FitSettings` field (learning_rate, tol, patience, progress, callback,
-        checkpoint_path, lm_patience, ...), `hook` (LM per-step hook), `stop` (interrupt event,
-        `diffcloth.fit.interrupt`) and `resume` (a checkpoint to continue from).
-    Returns:
-      FitResult (or MultiStartResult when multistart > 1).
-    Raises:
-      ValueError: unknown parameter names, a bad loss kind, bad ties, or targets of the wrong shape.
-    """
-    from diffcloth import pipeline
-    from diffcloth.fit.lm import fit_lm, fit_lm_multistart, num_scalars
-    from diffcloth.fit.schedule import make_schedule
-    from diffcloth.fit.settings import resolve_settings
-    from diffcloth.fit.ties import parse_ties
-
-    hook = fit_kwargs.pop("hook", None)
-    stop = fit_kwargs.pop("stop", None)
-    resume = fit_kwargs.pop("resume", None)
-    overrides = dict(fit_kwargs)
-    if steps is not None:
-        overrides["steps"] = steps
-    elif settings is None:
-        overrides.setdefault("steps", 100)
-    if optimizer is not None:
-        overrides["optimizer"] = optimizer
-    if method is not None:
-        overrides["method"] = method
-    if ties is not None:
-        overrides["ties"] = ties
-    if stages is not None:
-        overrides["stages"] = stages
-    s = resolve_settings(settings, overrides)
-    devices, multistart = s.devices, s.multistart
-    if devices is not None and (
-        isinstance(devices, bool) or not isinstance(devices, int) or devices < 1
-    ):
-        raise ValueError(f"devices must be an integer >= 1, got {devices!r}")
-    if devices is not None and devices > 1 and multistart % devices:
-        raise ValueError(
-            f"devices = {devices} spreads the multistart guesses over devices, so multistart must "
-            f"be a multiple of it (got multistart = {multistart}); a single fit runs on one device"
-        )
-    free = list(free)
-    if not free:
-        raise ValueError("free must name at least one parameter to fit")
-    pipeline.check_param_names(free)
-    tie_set = parse_ties(s.ties, free)
-    tied = [n for n in free if n in tie_set.targets]
-    free = [n for n in free if n not in tie_set.targets]
-    if not free:
-        raise ValueError(f"every free parameter is tied ({tied}); leave at least one free")
-    if "bump_strength" in free:  # warns when the bump map is filtered away at this resolution
-        from diffcloth.render.detail import check_bump_detail
-
-        check_bump_detail(scene, free)
-    if loss not in LOSSES:
-        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
-    targets = as_target_array(targets, "targets")
-    if targets.ndim == 4 and len(scene.cameras) == 1:
-        targets = targets[None]
-    # rendered (linear) videos exceed 1 at highlights and noisy synthetic targets ([fit] noise)
-    # dip below 0: only data that looks like 0..255 is refused here
-    targets = validate_targets(targets, scene.video_shape, name="targets", value_range=(None, 2.0))
-    targets = jnp.asarray(targets, scene.material.density.dtype)
-    init = {
-        n: np.asarray(init[n] if init and n in init else pipeline.param_value(scene, n))
-        for n in free
-    }
-    cons = {n: (constraints or {}).get(n, default_constraint(n)) for n in free}
-    chosen = choose_method(s.method, loss, num_scalars(init), s.optimizer)
-    inits = [init]
-    if multistart > 1:
-        rng = np.random.default_rng(s.seed)
-        for _ in range(multistart - 1):
-            guess = {}
-            for n, v in init.items():
-                if isinstance(cons[n], Positive):
-                    guess[n] = v * np.exp(s.spread * rng.standard_normal(np.shape(v)))
-                else:
-                    guess[n] = v + s.spread * 0.1 * rng.standard_normal(np.shape(v))
-            inits.append(guess)
-    if chosen == "lm":
-        stage_args, stage_names, levels, priors = _lm_stages(scene, loss, s.stages)
-        res_fn = _residual_fn(levels, tie_set)
-        common = dict(
-            loss_args=(targets, scene),
-            stages=stage_args,
-            stage_names=stage_names,
-            stage_priors=priors,
-            settings=s,
-            hook=hook,
-            stop=stop,
-            resume=resume,
-        )
-        sched = make_schedule(s.stages)
-        if any(st.staged for st in sched.stages):
-            if multistart > 1:
-                raise ValueError("stages with free or scan run one start: set multistart = 1")
-            result = _fit_staged_schedule(res_fn, init, cons, sched, stage_args, stage_names,
-                                          (targets, scene), s)  # fmt: skip
-        elif multistart <= 1:
-            result = fit_lm(res_fn, init, cons, **common)
-        else:
-            result = fit_lm_multistart(res_fn, inits, cons, **common)
-    else:
-        loss_fn = _loss_fn(loss, tie_set)
-        kw = dict(settings=s, loss_args=(targets, scene), resume=resume, stop=stop)
-        if multistart <= 1:
-            result = fit_params(loss_fn, init, cons, **kw)
-        else:
-            result = fit_multistart(
-                loss_fn, inits, cons, devices=devices if devices and devices > 1 else None, **kw
-            )
-    if tie_set:
-        for r in getattr(result, "results", [result]):
-            _add_tied(r, tie_set)
-    return result
+    dampers = [n for n in init if n in _FIRST]
+    stiff = [n for n in scan_candidates(init, cons) if n not in _FIRST]
+    stages: list[dict] = []
+    if dampers and len(dampers) < len(init):
+        stages.append({"frames": 0.35, "free": dampers})
+    stage: dict[str, Any] = {"frames": 0.5}
+    if stiff:
+        stage["scan"] = {stiff[0]: list(SCAN_FACTORS)}
+    stages.append(stage)
+    return stages
 
 
 def _fit_staged_schedule(res_fn, init, cons, sched, stage_args, stage_names, loss_args, s):

@@ -19,7 +19,7 @@ from typing import Any
 
 __all__ = ["METHODS", "FitSettings", "LM_MAX_PARAMS", "resolve_settings"]
 
-METHODS = ("auto", "lm", "adam")
+METHODS = ("auto", "lm", "adam", "staged")
 LM_MAX_PARAMS = 16  # method "auto" picks Levenberg-Marquardt up to this many scalar parameters
 
 
@@ -28,9 +28,15 @@ class FitSettings:
     """Options of the fitting loops. Fields not used by a method are ignored by it.
 
     Shared:
-      method: "auto" (LM for <= 16 scalar parameters and a least-squares loss, else Adam), "lm",
-        "adam". Only the scene-level `fit` and `run_fit_config` choose; `fit_params` is Adam and
-        `fit_lm` is LM.
+      method: "auto" (LM for <= 16 scalar parameters and a least-squares loss, else Adam; with
+        float64 under contact and a scan when the start is far: `diffcloth.fit.auto`), "lm",
+        "adam", "staged" (the staged LM recipe). Only the scene-level `fit` and `run_fit_config`
+        choose; `engines.adam` is Adam and `engines.lm` is LM.
+      scan: None (the method's own: "auto" scans by the far-start rule, "staged" scans the
+        stiffest scalar, "lm"/"adam" none), False (none), "auto" (the rule with any LM method)
+        or {name: factors} (scan these and start from the best). Scene-level `fit` only.
+      x64: None (the method's own: "auto"/"staged" fit in float64 when the scene has contact),
+        True or False. Scene-level `fit` only.
       steps: maximum optimizer steps (Adam updates; LM iterations of the last stage).
       tol, patience: "stalled" after `patience` steps without a relative loss improvement > tol.
       loss_tol: "converged" once the loss is <= loss_tol.
@@ -64,6 +70,8 @@ class FitSettings:
     """
 
     method: str = "auto"
+    scan: Any = None
+    x64: bool | None = None
     steps: int = 200
     tol: float = 1e-7
     patience: int | None = 50

@@ -13,7 +13,7 @@ with level 3 and compares with `diffcloth.fit.footage`: a robust (Huber) colour 
 soft-IoU silhouette term, the loss the cross-engine benchmark uses on Warp + Mitsuba footage.
 
 Fitted: the membrane stiffness scale k_struct (shear and flexion springs tied to it at the
-config's ratios), from a start 2x too soft, by Levenberg-Marquardt (`dc.fit.fit_lm`, the
+config's ratios), from a start 2x too soft, by Levenberg-Marquardt (`dc.fit.engines.lm`, the
 engine under `dc.fit.fit`, because the footage loss is a custom residual function). The air
 damping stays at the config's value: over these 0.4 s it changes the footage less than the
 noise does (its loss valley is flat; the cross-engine benchmark fits it first, alone, on longer
@@ -91,7 +91,7 @@ def residuals(p, scene, targets):
 
 
 start = {"k_struct": 20.0}
-result = dc.fit.fit_lm(
+result = dc.fit.engines.lm(
     residuals,
     start,
     {k: dc.fit.Positive() for k in start},
