@@ -509,6 +509,9 @@ def test_symplectic_conserves_momentum(dynamics):
     assert float(jnp.max(jnp.abs(traj.x[-1] - x0 - 0.004 * v0))) > 1e-5  # forces acted
 
 
+# compiles the implicit rollout's value-and-gradient program (70 s idle, shared with the
+# implicit gradient check below): slow tier
+@pytest.mark.slow
 def test_implicit_euler_never_gains_energy(dynamics):
     """Backward Euler without damping, pinned at two corners, swinging in gravity: kinetic +
     elastic + gravitational energy never increases from frame to frame."""
@@ -536,7 +539,10 @@ def test_implicit_euler_never_gains_energy(dynamics):
 
 @pytest.mark.parametrize(
     "integrator",
-    ["implicit", pytest.param("symplectic_grad", marks=[pytest.mark.slow, pytest.mark.gate])],
+    [
+        pytest.param("implicit", marks=[pytest.mark.slow, pytest.mark.gate]),
+        pytest.param("symplectic_grad", marks=[pytest.mark.slow, pytest.mark.gate]),
+    ],
 )
 def test_rollout_gradient_matches_central_differences(dynamics, integrator):
     """A sheet pinned at two corners, touching a sphere from the start: the gradient of a

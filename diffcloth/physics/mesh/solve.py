@@ -202,7 +202,10 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
 
     def cond(c):
         x, e, g, mu, nu, eta, k, res, _, _ = c
-        return (k < st.max_iters) & (res > tol) & jnp.isfinite(e) & (mu < 1e14)
+        # at least one step: where float32 rounding puts the tolerance above the start's
+        # residual (a fine mesh's implicit step: weight-sized force noise), the start would
+        # count as converged and the step would not move
+        return (k < st.max_iters) & ((res > tol) | (k == 0)) & jnp.isfinite(e) & (mu < 1e14)
 
     def factor(x, mu):
         hmat = _hessian(problem, x, theta)
