@@ -1,16 +1,18 @@
 """Fit defaults against the footage recipe (issue 33): old defaults, new defaults, the recipe.
 
-    python benchmarks/fit_defaults.py                       # both cases, all three methods
+    python benchmarks/fit_defaults.py                       # four cases, all three methods
     python benchmarks/fit_defaults.py --cases soft --runs auto --frames 24
 
 The target is synthetic footage of the cross-engine drape (`configs/cross_engine_drape.toml`: a
 13 x 13 Provot mass-spring cloth dropped onto a sphere, two cameras, float64 truth), rendered at
 twice the fit's resolution and box-averaged to it, plus Gaussian pixel noise (so it is not the
-model's own rendering). Two cases, the stiffness started off the truth as in the cross-engine
-protocol: "soft" (truth k_struct 40 N/m, start 100: 2.5x too stiff) and "stiff" (truth 400,
-start 100: 4x too soft); air damping starts at 0.002 (truth 0.01, 5x off) in both. Shear and
-flexion are tied to k_struct at the truth's ratios in every run; the fit's free values are
-k_struct and air_damping. The scene is built in float32, as `dc.build_scene` does by default.
+model's own rendering); the "*_footage" cases also draw what the fit's scene leaves out, as
+path-traced footage has it (the floor, the light's shadows, ambient occlusion). Two regimes,
+the stiffness started off the truth as in the cross-engine protocol: "soft" (truth k_struct
+40 N/m, start 100: 2.5x too stiff) and "stiff" (truth 400, start 100: 4x too soft); air
+damping starts at 0.002 (truth 0.01, 5x off) in both. Shear and flexion are tied to k_struct
+at the truth's ratios in every run; the fit's free values are k_struct and air_damping. The
+scene is built in float32, as `dc.build_scene` does by default.
 
 Runs, each in a fresh process (cold: import, compilation and fit):
 - "old": what `dc.fit.fit` did by default before the front door (LM, the scene's float32, the
@@ -41,19 +43,25 @@ CASES = {
     "soft": {"k_struct": 40.0, "air_damping": 0.01},
     "stiff": {"k_struct": 400.0, "air_damping": 0.01},
 }
+CASES["soft_footage"], CASES["stiff_footage"] = CASES["soft"], CASES["stiff"]
 START = {"k_struct": 100.0, "air_damping": 0.002}
 TIES = {"k_shear": "0.25 * k_struct", "k_flex": "0.05 * k_struct"}
 DASHPOTS = {"d_struct": 0.02, "d_shear": 0.01, "d_flex": 0.002}  # the truth's, not fitted
 RUNS = ("old", "auto", "recipe")
 
 
-def scene_data(frames: int, size: int) -> dict:
+def scene_data(frames: int, size: int, footage: bool = False) -> dict:
+    """The scene; `footage`: rendered with what the fit's scene leaves out, as a path tracer's
+    footage has it: the floor drawn, the light's shadows, ambient occlusion."""
     data = tomllib.loads(CONFIG.read_text())
     data.pop("fit", None)
     data.pop("truth", None)
     data["sim"]["num_frames"] = frames
     data["render"].update(width=size, height=size)
     data["material"].update(DASHPOTS)
+    if footage:
+        data["render"].update(draw_planes=True, ambient_occlusion=8)
+        data["lights"]["directional"][0]["shadows"] = True
     return data
 
 
@@ -71,8 +79,10 @@ def one_run(case: str, run: str, args) -> dict:
     full = {**truth, "k_shear": 0.25 * truth["k_struct"], "k_flex": 0.05 * truth["k_struct"]}
     # footage: the truth in float64 at 2x the size, box-averaged, plus noise
     with jax.enable_x64(True):
-        big = dc.build_scene(dc.config.parse_config(scene_data(args.frames, 2 * args.size)),
-                             dtype=jnp.float64)  # fmt: skip
+        big = dc.build_scene(
+            dc.config.parse_config(scene_data(args.frames, 2 * args.size, "footage" in case)),
+            dtype=jnp.float64,
+        )
         video = np.asarray(jax.jit(dc.simulate_and_render)(big, full))
     c, t, h, w, _ = video.shape
     video = video.reshape(c, t, h // 2, 2, w // 2, 2, 3).mean(axis=(3, 5))
@@ -103,11 +113,18 @@ def one_run(case: str, run: str, args) -> dict:
     iou = inter / union
     auto = dict(result.auto or {})
     scans = [
-        {"name": s["name"], "best": s["best"], "moved": s["moved"]} for s in auto.pop("scans", [])
+        {
+            "name": s["name"],
+            "best": s["best"],
+            "moved": s["moved"],
+            "best_loss": min(v for _, v in s["profile"]),
+        }
+        for s in auto.pop("scans", [])
     ]
     return dict(
         bench="fit_defaults", case=case, run=run, method=result.method,
         x64=bool(auto.get("x64")), far=auto.get("far"), scans=scans,
+        scan_loss=[auto.get("initial_loss"), auto.get("loss")],
         truth=truth, start=START, fitted=fitted, err_pct=err,
         iou_mean=round(float(iou.mean()), 4), iou_min=round(float(iou.min()), 4),
         status=result.status, loss=float(result.loss), evaluations=result.evaluations,
@@ -120,6 +137,7 @@ def one_run(case: str, run: str, args) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--append", action="store_true", help="add to --out instead of replacing")
     ap.add_argument("--runs", nargs="*", default=list(RUNS), choices=list(RUNS))
     ap.add_argument("--frames", type=int, default=30, help="simulated frames (30 fps)")
     ap.add_argument("--size", type=int, default=64, help="fit image size (targets at 2x)")
@@ -135,6 +153,7 @@ def main(argv=None):
                 machine=platform.machine(), frames=a.frames, size=a.size, noise=a.noise,
                 commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                                       capture_output=True, text=True).stdout.strip())  # fmt: skip
+    old = Path(a.out).read_text().splitlines(keepends=True) if a.append else []
     rows = [meta]
     print(json.dumps(meta), flush=True)
     for case in a.cases:
@@ -147,7 +166,7 @@ def main(argv=None):
                 bench="fit_defaults", case=case, run=run, error=out.stderr[-2000:])  # fmt: skip
             rows.append(row)
             print(json.dumps(row), flush=True)
-            Path(a.out).write_text("".join(json.dumps(r) + "\n" for r in rows))
+            Path(a.out).write_text("".join(old) + "".join(json.dumps(r) + "\n" for r in rows))
     print(
         "\n| case | run | method | x64 | k_struct err | air err | IoU mean / min | fit s | status |"
     )

@@ -138,7 +138,12 @@ def test_auto_scan_rule_far_moves_near_stays():
     assert float(far["k"]) == pytest.approx(30.0 / 16)  # the grid point nearest the truth
     assert rec["loss"] < rec["initial_loss"] / auto.SCAN_GAIN
     near, rec = auto.scan_start(_decay, {"k": np.asarray(2.3)}, ["k"], (t, y), ())
-    assert not rec["far"] and float(near["k"]) == 2.3  # the start's loss is within 2x: stay
+    assert not rec["far"] and float(near["k"]) == 2.3  # the start is the best grid point: stay
+    for k0 in (2.9, 3.5, 5.0, 7.0):  # the rule: move iff a grid point is SCAN_GAIN x lower
+        got, rec = auto.scan_start(_decay, {"k": np.asarray(k0)}, ["k"], (t, y), ())
+        low = min(v for _, v in rec["scans"][0]["profile"])
+        assert rec["far"] == (low < rec["initial_loss"] / auto.SCAN_GAIN), (k0, rec)
+        assert float(got["k"]) == (rec["scans"][0]["best"] if rec["far"] else k0)
     # explicit factors (gain None) always move to the best grid point
     got, rec = auto.scan_start(_decay, {"k": np.asarray(2.3)}, {"k": [0.5, 0.87, 1.0]}, (t, y),
                                (), gain=None)  # fmt: skip
@@ -155,7 +160,7 @@ def test_scan_candidates_order_and_limit():
     assert auto.scan_candidates(init, cons) == ["stretch", "shear", "bend"]
 
 
-def test_front_door_scans_a_far_start_and_starts_damped(engines_recorded, monkeypatch):
+def test_front_door_scans_a_far_start(engines_recorded, monkeypatch):
     sc = _scene()
     seen = {}
 
@@ -170,10 +175,10 @@ def test_front_door_scans_a_far_start_and_starts_damped(engines_recorded, monkey
                    progress=False)  # fmt: skip
     name, init, kwargs = engines_recorded[-1]
     assert seen == {"names": ["stretch"], "gain": auto.SCAN_GAIN}
-    assert float(init["stretch"]) == 12.5 and kwargs["settings"].lm_tau == 1.0
+    assert float(init["stretch"]) == 12.5 and kwargs["settings"].lm_tau == 1e-3  # not damped
     assert r.auto["far"] and float(r.initial["stretch"]) == 50.0  # the caller's start
     dc.fit.fit(sc, np.zeros(sc.video_shape), ["stretch"], method="lm", progress=False)
-    assert len(seen) == 2 and engines_recorded[-1][2]["settings"].lm_tau == 1e-3  # lm: no scan
+    assert len(seen) == 2  # method "lm": no scan
     seen.clear()
     dc.fit.fit(sc, np.zeros(sc.video_shape), ["stretch"], init={"stretch": 50.0},
                scan={"stretch": [0.5, 2.0]}, method="lm", progress=False)  # fmt: skip

@@ -8,8 +8,9 @@
         multistart = 1, devices = 1 (spread the multistart guesses over this many devices;
         multistart must be a multiple; `diffcloth fit --devices N` overrides),
         identifiability = true, noise_sigma = 0.01,
-        method = "auto" | "lm" | "adam" (auto: Levenberg-Marquardt for l2/pyramid and <= 16
-        scalar parameters), stages = "default" | "none" | [{min_level = 2, frames = 0.5}, ...]
+        method = "auto" | "lm" | "adam" | "staged" (auto: Levenberg-Marquardt for l2/pyramid and
+        <= 16 scalar parameters, as "lm" from the command line; staged: the footage recipe of
+        `dc.fit.fit(method="staged")`), stages = "default" | "none" | [{min_level = 2, frames = 0.5}, ...]
         (a stage may also set free = [subset] and scan = {name = [factors]}: diffcloth.fit.staged)
         (LM coarse-to-fine), lm_patience = 6, lm_xtol = 1e-5, lm_ftol = 1e-6, lm_tau = 1e-3,
         lm_polish = 10 (LM tolerances, initial damping, Gauss-Newton polish steps),

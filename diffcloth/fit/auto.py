@@ -12,7 +12,9 @@ that a plain local Levenberg-Marquardt run lacks; "auto" does each when a measur
    times 2^-4 .. 2^4 of up to `MAX_SCANNED` positive physical scalars, one after another (air
    resistance first: it alone sets the free fall; then the stiffnesses). The fit moves to a grid
    point when its loss is below 1/`SCAN_GAIN` of the current loss ("far"); otherwise the start
-   stays ("near"). A far start also begins damped (lm_tau = 1 unless given).
+   stays ("near"). After the scan the start is within about sqrt(2) of the best grid point in
+   each scanned parameter, so LM keeps Marquardt's undamped start (lm_tau 1e-3; "staged"
+   starts damped).
 3. The coarse-to-fine stages of the schedule (pyramid levels, a growing frame window).
 
 `hints` reads a finished fit and names the knob to turn when it stalled.
@@ -40,7 +42,7 @@ __all__ = [
 ]
 
 SCAN_FACTORS = tuple(float(f) for f in 2.0 ** np.arange(-4, 5))  # x 1/16 .. 16, 9 points
-SCAN_GAIN = 2.0  # "far": a grid point's loss is below 1/SCAN_GAIN of the start's
+SCAN_GAIN = 4.0  # "far": a grid point's loss is below 1/SCAN_GAIN of the start's
 MAX_SCANNED = 3
 #: scan order: air resistance (sets the free fall alone), then stiffnesses, then the rest
 _FIRST = ("air_damping", "drag_normal", "drag", "drag_tangent")

@@ -64,7 +64,7 @@ def fit(
         method's default, "none", or a list of {"min_level", "frames", "free", "scan"}); a
         stage with `free` or `scan` runs the staged engine.
       scan: None (the method's: "auto" scans up to 3 positive physical scalars and moves only
-        when a grid point's loss is below half the start's), False, "auto", or {name: factors}
+        when a grid point's loss is below a quarter of the start's), False, "auto", or {name: factors}
         (scan those, start from the best).
       x64: None (the method's: "auto" and "staged" use float64 when the scene has contact), True,
         False. JAX's x64 is on for this call only; the scene and targets are cast.
@@ -108,7 +108,7 @@ def fit(
     given = set(overrides) | {
         f.name
         for f in dataclasses.fields(FitSettings)
-        if settings is not None and getattr(settings, f.name) is not getattr(default, f.name)
+        if settings is not None and getattr(settings, f.name) != getattr(default, f.name)
     }
     devices, multistart = s.devices, s.multistart
     if devices is not None and (
@@ -234,8 +234,6 @@ class _Job:
                 if names:
                     init, record = scan_start(res_fn, init, names, (targets, scene),
                                               stage_args[0], gain=SCAN_GAIN if rule else None)  # fmt: skip
-                    if record["far"] and "lm_tau" not in self.given:
-                        s = s.replace(lm_tau=1.0)  # a far start: begin damped
             sched = make_schedule(spec)
             if any(st.staged for st in sched.stages):
                 if multistart > 1:
@@ -257,7 +255,8 @@ class _Job:
             if multistart <= 1 and (record is not None or self.engine == "staged"):
                 r.initial = {k: np.asarray(v) for k, v in inits[0].items()}  # before the scan
             r.auto = dict(record or {})
-            x64 = np.dtype(scene.material.density.dtype) == np.float64
+            # a float32 fit the caller asked for (x64=False) gets no "use x64" hint
+            x64 = np.dtype(scene.material.density.dtype) == np.float64 or "x64" in self.given
             r.hints = hints(r, cons=cons, auto=record, x64=x64, contact=self.contact, ident=ident)
             if self.ties:
                 _add_tied(r, self.ties)

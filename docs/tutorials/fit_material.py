@@ -43,9 +43,18 @@ result = dc.fit.fit(
     init={"bend": 8e-4, "drag_normal": 0.4},
     steps=20,
     stages="none",  # one stage at full size (the default goes coarse to fine)
+    # the target was rendered by this float32 scene, so fit in float32 too: method "auto" would
+    # fit in float64 (the sphere is contact: right for footage), and the float32 target's own
+    # round-off, grown by the contact, would then be a model error
+    x64=False,
     progress=False,
 )
 print(result.method, result.summary())
+print(
+    "auto:",
+    {k: v for k, v in result.auto.items() if k != "scans"},
+    [(s["name"], s["best"], s["moved"]) for s in result.auto.get("scans", [])],
+)
 errors = {k: float(result.params[k]) / v - 1 for k, v in truth.items()}
 for k, e in errors.items():
     print(f"{k}: fitted {float(result.params[k]):.6g}, true {truth[k]:.6g}, error {e:+.4%}")
