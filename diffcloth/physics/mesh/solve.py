@@ -223,7 +223,9 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
             hvp = lambda p: jax.jvp(grad_fn, (x,), (p,))[1]
             exact = lambda p: (hvp(p * fmask) + mu * mass[:, None] * p) * fmask
             p, ok, kry = _cg(exact, -g, pre, st.krylov_iters, eta)
-            p = jnp.where(ok, p, pre(-g))
+            # CG on a float32 HVP can break down into non-finite values (a fine mesh's stiff
+            # membrane): then the factorization's own step
+            p = jnp.where(ok & jnp.all(jnp.isfinite(p)), p, pre(-g))
             ok = jnp.all(jnp.isfinite(p))
             p = jnp.where(ok, p, 0.0)
         else:
