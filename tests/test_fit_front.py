@@ -200,6 +200,12 @@ def test_hints_name_the_knob():
     assert any(s.startswith("parameter at a bound: a") for s in h), h
     assert any(s.startswith("parameter ran off: k") for s in h), h
     assert any("ran all 7 steps" in s for s in h), h
+    scans = {"scans": [dict(name="k", profile=[], best=16.0, moved=True, edge=True)]}
+    h = auto.hints(bound, cons=cons, auto=scans, x64=True, contact=False)
+    assert any(s.startswith("scan edge: k") for s in h), h
+    assert not auto.hints(
+        _result({"k": 16.0, "a": 0.4}, start), cons=cons, auto=scans, x64=True, contact=False
+    )  # converged: the LM went past the grid's end
     ident = type("I", (), {"confounded": [("k", "a", 0.99)]})()
     h = auto.hints(stalled, cons=cons, auto=None, x64=True, contact=False, ident=ident)
     assert any(s.startswith("confounded pair: k and a") and "tie or fix" in s for s in h), h
@@ -208,7 +214,7 @@ def test_hints_name_the_knob():
 
 
 @pytest.mark.slow  # compiles a tiny drape's scan and LM step (~1-2 min on a loaded 2-core box)
-def test_auto_fits_a_far_start_that_plain_lm_leaves_stalled():
+def test_auto_scans_a_far_start_and_fits():
     from tests.test_fit_lm import TINY, TRUTH
 
     sc = dc.build_scene(cfg.parse_config(TINY))

@@ -164,7 +164,7 @@ def hints(result, *, cons, auto: Mapping | None, x64: bool, contact: bool, ident
                     f"parameter ran off: {name} moved {np.exp(ratio):.0f}x from its start: the "
                     "loss is flat in it; fix it, tie it (ties=) or start closer (init=)"
                 )
-    for s in scans:
+    for s in scans if stalled else []:  # the LM may well go on past the grid's end
         if s["moved"] and s["edge"]:
             out.append(
                 f"scan edge: {s['name']}'s best grid point {s['best']:.4g} is the end of the scan:"
