@@ -206,6 +206,10 @@ def test_hints_name_the_knob():
     assert not auto.hints(
         _result({"k": 16.0, "a": 0.4}, start), cons=cons, auto=scans, x64=True, contact=False
     )  # converged: the LM went past the grid's end
+    wrong = _result({"k": 2.0, "a": 0.4}, start)  # converged, loss 0.5: RMS 0.71 > 0.05
+    assert auto.hints(wrong, cons=cons, auto=None, x64=True, contact=True) == []
+    h = auto.hints(wrong, cons=cons, auto=None, x64=True, contact=True, loss="l2")
+    assert len(h) == 1 and h[0].startswith("large residual: pixel error 0.71"), h
     ident = type("I", (), {"confounded": [("k", "a", 0.99)]})()
     h = auto.hints(stalled, cons=cons, auto=None, x64=True, contact=False, ident=ident)
     assert any(s.startswith("confounded pair: k and a") and "tie or fix" in s for s in h), h

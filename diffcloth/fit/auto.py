@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = [
+    "LARGE_RESIDUAL",
     "MAX_SCANNED",
     "SCAN_FACTORS",
     "SCAN_GAIN",
@@ -44,6 +45,7 @@ __all__ = [
 SCAN_FACTORS = tuple(float(f) for f in 2.0 ** np.arange(-4, 5))  # x 1/16 .. 16, 9 points
 SCAN_GAIN = 4.0  # "far": a grid point's loss is below 1/SCAN_GAIN of the start's
 MAX_SCANNED = 3
+LARGE_RESIDUAL = 0.05  # RMS (l2, pyramid) or mean (l1) pixel error, fraction of full scale
 #: scan order: air resistance (sets the free fall alone), then stiffnesses, then the rest
 _FIRST = ("air_damping", "drag_normal", "drag", "drag_tangent")
 _STIFF = ("k_struct", "stretch", "stretch_warp", "stretch_weft", "k_shear", "shear", "bend",
@@ -135,11 +137,14 @@ def scan_start(
     return current, dict(initial_loss=start_loss, loss=best_loss, far=far, scans=scans)
 
 
-def hints(result, *, cons, auto: Mapping | None, x64: bool, contact: bool, ident=None) -> list[str]:
+def hints(
+    result, *, cons, auto: Mapping | None, x64: bool, contact: bool, ident=None, loss=None
+) -> list[str]:
     """Knobs to turn, one line each, for a fit that did not converge cleanly.
 
     auto: the front door's record (scan, x64); ident: an `Identifiability` at the fitted values,
-    or None. Empty when the fit converged away from every bound."""
+    or None; loss: the fit's loss kind ("l2", "pyramid", "l1"; None: no residual check). Empty
+    when the fit converged away from every bound with a residual below LARGE_RESIDUAL."""
     from diffcloth.fit.constraints import Bounded, Positive
 
     out = []
@@ -169,6 +174,15 @@ def hints(result, *, cons, auto: Mapping | None, x64: bool, contact: bool, ident
             out.append(
                 f"scan edge: {s['name']}'s best grid point {s['best']:.4g} is the end of the scan:"
                 f" widen it, scan={{{s['name']!r}: [...]}}, or start closer (init=)"
+            )
+    if loss in ("l2", "pyramid", "l1") and np.isfinite(result.loss):
+        rms = float(np.sqrt(result.loss)) if loss != "l1" else float(result.loss)
+        if rms > LARGE_RESIDUAL:
+            out.append(
+                f"large residual: pixel error {rms:.2f} of full scale at the fitted values: the "
+                "scene does not explain the images (a floor, shadows, lights, background or "
+                "camera it lacks: add them, or fit light_*, background, exposure), or the fit "
+                "is in a wrong basin (scan=, method='staged')"
             )
     if ident is not None:
         for a, b, r in ident.confounded[:2]:

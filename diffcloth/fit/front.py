@@ -257,7 +257,8 @@ class _Job:
             r.auto = dict(record or {})
             # a float32 fit the caller asked for (x64=False) gets no "use x64" hint
             x64 = np.dtype(scene.material.density.dtype) == np.float64 or "x64" in self.given
-            r.hints = hints(r, cons=cons, auto=record, x64=x64, contact=self.contact, ident=ident)
+            r.hints = hints(r, cons=cons, auto=record, x64=x64, contact=self.contact, ident=ident,
+                            loss=self.loss)  # fmt: skip
             if self.ties:
                 _add_tied(r, self.ties)
         return result
