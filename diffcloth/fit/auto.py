@@ -7,14 +7,14 @@ that a plain local Levenberg-Marquardt run lacks; "auto" does each when a measur
    amplify float32 round-off until the loss jumps at the scale LM probes (the cross-engine
    drape's loss moves 1 % for a 1e-6 relative change of the stiffness). JAX's x64 is switched on
    for the fit only (`jax.enable_x64` context) and the scene, targets and values are cast.
-2. A scan before the local method when the start is far: the loss (forward only, on the first
-   coarse stage's weights: blurred levels, the first half of the frames) at the start value
-   times 2^-4 .. 2^4 of up to `MAX_SCANNED` positive physical scalars, one after another (air
-   resistance first: it alone sets the free fall; then the stiffnesses). The fit moves to a grid
-   point when its loss is below 1/`SCAN_GAIN` of the current loss ("far"); otherwise the start
-   stays ("near"). After the scan the start is within about sqrt(2) of the best grid point in
-   each scanned parameter, so LM keeps Marquardt's undamped start (lm_tau 1e-3; "staged"
-   starts damped).
+2. A scan before the local method when the start is far: the loss (forward only, on the full
+   resolution over the first half of the frames, as the recipe scans) at the start value times
+   2^-4 .. 2^4 of up to `MAX_SCANNED` positive physical scalars, one after another (air
+   resistance first: it alone sets the free fall; then the stiffnesses). The fit moves to the
+   best grid point when the current loss lies in the upper half of the scan's range (above
+   low + `SCAN_RISE` (high - low): "far"); otherwise the start stays ("near"). After the scan
+   the start is within about sqrt(2) of the best grid point in each scanned parameter, so LM
+   keeps Marquardt's undamped start (lm_tau 1e-3; "staged" starts damped).
 3. The coarse-to-fine stages of the schedule (pyramid levels, a growing frame window).
 
 `hints` reads a finished fit and names the knob to turn when it stalled.
@@ -34,7 +34,7 @@ __all__ = [
     "LARGE_RESIDUAL",
     "MAX_SCANNED",
     "SCAN_FACTORS",
-    "SCAN_GAIN",
+    "SCAN_RISE",
     "cast_floats",
     "has_contact",
     "hints",
@@ -43,7 +43,7 @@ __all__ = [
 ]
 
 SCAN_FACTORS = tuple(float(f) for f in 2.0 ** np.arange(-4, 5))  # x 1/16 .. 16, 9 points
-SCAN_GAIN = 4.0  # "far": a grid point's loss is below 1/SCAN_GAIN of the start's
+SCAN_RISE = 0.5  # "far": the start's loss is in the upper half of the scan's range
 MAX_SCANNED = 3
 LARGE_RESIDUAL = 0.05  # RMS (l2, pyramid) or mean (l1) pixel error, fraction of full scale
 #: scan order: air resistance (sets the free fall alone), then stiffnesses, then the rest
@@ -104,13 +104,15 @@ def scan_start(
     loss_args: tuple,
     stage_args: tuple,
     *,
-    gain: float | None = SCAN_GAIN,
+    rise: float | None = SCAN_RISE,
 ) -> tuple[dict[str, np.ndarray], dict]:
     """Scan each name in turn (value x factor, the others at the best so far) and return the
     start and a record {"initial_loss", "loss", "far", "scans": [{name, profile, best, moved}]}.
 
-    names: a list (factors SCAN_FACTORS) or {name: factors}. gain: move to a grid point only
-    when its loss is below 1/gain of the current one (None: always move to the best)."""
+    names: a list (factors SCAN_FACTORS) or {name: factors}. rise: move to the best grid point
+    only when the current loss lies above low + rise * (high - low) of the scan's finite losses
+    (the upper half for 0.5): a rule blind to a constant offset of the loss, such as footage
+    pixels the scene does not model (None: always move to a lower grid point)."""
     loss = _loss(residual_fn)
     spec = dict(names) if isinstance(names, Mapping) else {n: SCAN_FACTORS for n in names}
     current = {k: np.asarray(v) for k, v in init.items()}
@@ -127,7 +129,8 @@ def scan_start(
             value = current[name] * float(f)
             profile.append((float(value), at({**current, name: value})))
         value, low = min(profile, key=lambda vl: vl[1])
-        moved = low < best_loss / gain if gain else low < best_loss
+        high = max([v for _, v in profile if np.isfinite(v)] + [best_loss])
+        moved = low < best_loss and (rise is None or best_loss - low > rise * (high - low))
         if moved:
             current[name] = np.asarray(value, current[name].dtype)
             best_loss = low

@@ -64,8 +64,8 @@ def fit(
         method's default, "none", or a list of {"min_level", "frames", "free", "scan"}); a
         stage with `free` or `scan` runs the staged engine.
       scan: None (the method's: "auto" scans up to 3 positive physical scalars and moves only
-        when a grid point's loss is below a quarter of the start's), False, "auto", or {name: factors}
-        (scan those, start from the best).
+        when the start's loss is in the upper half of the scan's range), False, "auto", or
+        {name: factors} (scan those, start from the best).
       x64: None (the method's: "auto" and "staged" use float64 when the scene has contact), True,
         False. JAX's x64 is on for this call only; the scene and targets are cast.
       init: initial physical values (default: the scene's own values).
@@ -194,7 +194,7 @@ class _Job:
     contact: bool
 
     def __call__(self, scene, targets, inits):
-        from diffcloth.fit.auto import SCAN_GAIN, hints, scan_candidates, scan_start
+        from diffcloth.fit.auto import SCAN_RISE, hints, scan_candidates, scan_start
         from diffcloth.fit.lm import fit_lm, fit_lm_multistart
         from diffcloth.fit.loop import fit_multistart, fit_params
         from diffcloth.fit.scene_fit import (
@@ -205,7 +205,7 @@ class _Job:
             _residual_fn,
             recipe_stages,
         )
-        from diffcloth.fit.schedule import make_schedule
+        from diffcloth.fit.schedule import Stage, make_schedule, stage_weights
 
         s, cons, run = self.s, self.cons, self.run
         init, multistart = inits[0], len(inits)
@@ -231,9 +231,12 @@ class _Job:
             if scan not in (False, "none") and multistart <= 1 and run["resume"] is None:
                 rule = scan in ("auto", True)
                 names = scan_candidates(init, cons) if rule else dict(scan)
-                if names:
+                if names:  # on the full resolution over the first half of the frames
+                    lw, fw = stage_weights(self.loss, levels, targets.shape[1], Stage(0, 0.5),
+                                           np.dtype(targets.dtype))  # fmt: skip
                     init, record = scan_start(res_fn, init, names, (targets, scene),
-                                              stage_args[0], gain=SCAN_GAIN if rule else None)  # fmt: skip
+                                              (jnp.asarray(lw), jnp.asarray(fw)),
+                                              rise=SCAN_RISE if rule else None)  # fmt: skip
             sched = make_schedule(spec)
             if any(st.staged for st in sched.stages):
                 if multistart > 1:
