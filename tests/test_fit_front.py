@@ -177,10 +177,18 @@ def test_front_door_scans_a_far_start(engines_recorded, monkeypatch):
                    progress=False)  # fmt: skip
     name, init, kwargs = engines_recorded[-1]
     assert seen == {"names": ["stretch"], "rise": auto.SCAN_RISE}
-    assert float(init["stretch"]) == 12.5 and kwargs["settings"].lm_tau == 1e-3  # not damped
-    assert r.auto["far"] and float(r.initial["stretch"]) == 50.0  # the caller's start
+    # far: the staged recipe from the caller's start (damped LM, the recipe's stages)
+    assert name == "staged_schedule" and float(init["stretch"]) == 50.0
+    assert kwargs["settings"].lm_tau == 1.0 and kwargs["sched"].stages[-1].scan[0] == "stretch"
+    assert r.auto["far"] and r.auto["engine"] == "staged" and r.method == "staged"
+    assert float(r.initial["stretch"]) == 50.0
+    dc.fit.fit(sc, np.zeros(sc.video_shape), ["stretch"], init={"stretch": 50.0}, stages="none",
+               progress=False)  # fmt: skip
+    name, init, kwargs = engines_recorded[-1]  # own stages: LM from the scanned start, undamped
+    assert name == "lm" and float(init["stretch"]) == 12.5 and kwargs["settings"].lm_tau == 1e-3
+    seen.clear()
     dc.fit.fit(sc, np.zeros(sc.video_shape), ["stretch"], method="lm", progress=False)
-    assert len(seen) == 2  # method "lm": no scan
+    assert not seen  # method "lm": no scan
     seen.clear()
     dc.fit.fit(sc, np.zeros(sc.video_shape), ["stretch"], init={"stretch": 50.0},
                scan={"stretch": [0.5, 2.0]}, method="lm", progress=False)  # fmt: skip

@@ -12,9 +12,9 @@ that a plain local Levenberg-Marquardt run lacks; "auto" does each when a measur
    2^-4 .. 2^4 of up to `MAX_SCANNED` positive physical scalars, one after another (air
    resistance first: it alone sets the free fall; then the stiffnesses). The fit moves to the
    best grid point when the current loss lies in the upper half of the scan's range (above
-   low + `SCAN_RISE` (high - low): "far"); otherwise the start stays ("near"). After the scan
-   the start is within about sqrt(2) of the best grid point in each scanned parameter, so LM
-   keeps Marquardt's undamped start (lm_tau 1e-3; "staged" starts damped).
+   low + `SCAN_RISE` (high - low): "far"); otherwise the start stays ("near"). A far start
+   runs the staged recipe from the start (`scene_fit.recipe_stages`, damped LM), or, with the
+   caller's own `stages`, LM from the best grid point.
 3. The coarse-to-fine stages of the schedule (pyramid levels, a growing frame window).
 
 `hints` reads a finished fit and names the knob to turn when it stalled.
