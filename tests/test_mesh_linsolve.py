@@ -139,3 +139,20 @@ def test_factors_dropped_on_other_threads_are_freed():
     run(60, 100)
     grown = rss_mb() - before
     assert grown < 60, f"RSS grew by {grown:.0f} MB over 60 factorizations"
+
+
+def test_a_token_in_use_outlives_newer_factorizations():
+    """Eviction drops the least recently used factorization: a Newton solve that keeps its
+    token for several steps (and, under vmap, a batch element's lagged token) stays valid
+    while newer ones come and go; an unused one is dropped."""
+    h, nbr, a = _grid_system(3)
+    free = np.ones(nbr.shape[0], bool)
+    rhs = np.random.default_rng(2).standard_normal((nbr.shape[0], 3))
+    want = np.linalg.solve(a.toarray(), rhs.reshape(-1)).reshape(rhs.shape)
+    kept = linsolve._on_owner(linsolve._factor_now, h, nbr, free)
+    dropped = linsolve._on_owner(linsolve._factor_now, h, nbr, free)
+    for _ in range(3 * linsolve._KEEP):
+        linsolve._on_owner(linsolve._factor_now, h, nbr, free)
+        z = linsolve._on_owner(linsolve._solve_now, kept, rhs)
+        np.testing.assert_allclose(z, want, rtol=1e-9, atol=1e-12)
+    assert np.all(np.isnan(linsolve._on_owner(linsolve._solve_now, dropped, rhs)))

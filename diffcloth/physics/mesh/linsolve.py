@@ -41,7 +41,9 @@ __all__ = ["direct_solve", "factor", "pin_rows", "solve"]
 # ------------------------------------------------------------------------------- host side
 
 #: host-side factorizations by token: `factor` stores one and returns its token, `solve` uses it
-#: (the preconditioned Krylov iterations of a Newton step factor their matrix once)
+#: (the preconditioned Krylov iterations of a Newton step factor their matrix once; a Newton
+#: solve keeps one for several steps). Least recently used first: under `vmap` a lagged token
+#: stays alive while its batch element solves with it (up to _KEEP / 2 elements)
 _FACTORS: dict[int, object] = {}
 _NEXT = [1]
 _KEEP = 16
@@ -199,7 +201,11 @@ def _factor_now(h: np.ndarray, nbr: np.ndarray, free: np.ndarray) -> int:
 
 
 def _solve_now(token: int, rhs: np.ndarray) -> np.ndarray:
-    lu, pat, dtype = _FACTORS.get(token, (None, None, None))
+    entry = _FACTORS.pop(token, None)
+    if entry is None:
+        return np.full(rhs.shape, np.nan, rhs.dtype)
+    _FACTORS[token] = entry  # most recently used last: eviction drops the least recently used
+    lu, pat, dtype = entry
     if lu is None:
         return np.full(rhs.shape, np.nan, rhs.dtype)
     z = rhs.astype(dtype).reshape(-1)  # pinned rows: the identity
@@ -225,7 +231,8 @@ def _host_solve(token, rhs):
 def factor(h, neighbors, free=None):
     """Factor the block-row matrix h (n, K, 3, 3) on the host; returns a token (int32 scalar)
     for `solve`. free (n,) bool: the system is over these vertices only (the others' rows and
-    columns are the identity; default all). Tokens stay valid for the next 16 factorizations."""
+    columns are the identity; default all). Tokens stay valid while used (the 16 most recently
+    made or used are kept)."""
     if free is None:
         free = jnp.ones(h.shape[0], bool)
     out = jax.ShapeDtypeStruct((), jnp.int32)
