@@ -13,7 +13,6 @@ DIFFCLOTH_CHROMIUM=/path/to/chrome to pick a binary). With DIFFCLOTH_REQUIRE_BRO
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import os
@@ -25,26 +24,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-# .ci/run sets DIFFCLOTH_REQUIRE_BROWSER=1: there a viewer test that would skip (no viser,
-# playwright or Chromium) fails instead, with the same message, so that CI cannot pass without them
-REQUIRE_BROWSER = os.environ.get("DIFFCLOTH_REQUIRE_BROWSER") == "1"
-
-
-def _skip(reason: str):
-    """pytest.skip, or pytest.fail with DIFFCLOTH_REQUIRE_BROWSER=1 (CI)."""
-    if REQUIRE_BROWSER:
-        pytest.fail(f"{reason} [DIFFCLOTH_REQUIRE_BROWSER=1: CI runs every viewer test]")
-    pytest.skip(reason)
-
-
-def _need(module: str, reason: str):
-    """pytest.importorskip, failing instead of skipping under DIFFCLOTH_REQUIRE_BROWSER=1."""
-    try:
-        return importlib.import_module(module)
-    except ImportError:
-        _skip(reason)
-
+from viewer_deps import need as _need
+from viewer_deps import skip_or_fail as _skip
 
 # A small drape with a strongly red cloth (so cloth pixels are easy to find in screenshots), one
 # sphere and a floor; 12 frames keep the compile short.

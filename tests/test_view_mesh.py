@@ -5,36 +5,16 @@ colliders, fabric sliders that re-solve the equilibrium, the render panel, the v
 
 from __future__ import annotations
 
-import importlib
-import os
 import re
 from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
+from viewer_deps import need as _need
 
 ROOT = Path(__file__).resolve().parent.parent
 SIZE = 24  # render panel size of every model here (one compiled render program)
-
-# .ci/run sets DIFFCLOTH_REQUIRE_BROWSER=1: there a viewer test that would skip (no viser,
-# playwright or Chromium) fails instead, with the same message, so that CI cannot pass without them
-REQUIRE_BROWSER = os.environ.get("DIFFCLOTH_REQUIRE_BROWSER") == "1"
-
-
-def _skip(reason: str):
-    """pytest.skip, or pytest.fail with DIFFCLOTH_REQUIRE_BROWSER=1 (CI)."""
-    if REQUIRE_BROWSER:
-        pytest.fail(f"{reason} [DIFFCLOTH_REQUIRE_BROWSER=1: CI runs every viewer test]")
-    pytest.skip(reason)
-
-
-def _need(module: str, reason: str):
-    """pytest.importorskip, failing instead of skipping under DIFFCLOTH_REQUIRE_BROWSER=1."""
-    try:
-        return importlib.import_module(module)
-    except ImportError:
-        _skip(reason)
 
 
 @pytest.fixture(autouse=True)
