@@ -1,0 +1,131 @@
+"""Self-contact of the mesh cloth (physics/mesh/selfcontact*.py): the broad and narrow phase
+against brute-force numpy distances, the capacity overflow report, the barrier's step filter,
+and the solves with self-contact on."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffcloth.physics.mesh import make_cloth, rectangle
+from diffcloth.physics.mesh import selfcontact as sc
+
+_FIND = jax.jit(sc.find_pairs)
+_GAP = jax.jit(sc.gap)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _solver_rank_promotion():
+    """As tests/test_physics_mesh.py: hessian.py broadcasts across ranks."""
+    with jax.numpy_rank_promotion("allow"):
+        yield
+
+
+def _seg_point(p, a, b):
+    ab = b - a
+    t = np.clip(np.dot(p - a, ab) / max(np.dot(ab, ab), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t * ab))
+
+
+def np_point_triangle(p, a, b, c):
+    """Plane distance if the projection falls inside, else the nearest edge (plain numpy)."""
+    n = np.cross(b - a, c - a)
+    n = n / np.linalg.norm(n)
+    h = np.dot(p - a, n)
+    q = p - h * n
+    inside = all(np.dot(np.cross(v1 - v0, q - v0), n) >= 0 for v0, v1 in ((a, b), (b, c), (c, a)))
+    if inside:
+        return abs(h)
+    return min(_seg_point(p, a, b), _seg_point(p, b, c), _seg_point(p, c, a))
+
+
+def np_edge_edge(p0, p1, q0, q1):
+    """Min over the unit square of |P(s) - Q(t)|: the interior stationary point (if any) and
+    the four sides (plain numpy)."""
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    best = min(_seg_point(p0, q0, q1), _seg_point(p1, q0, q1), _seg_point(q0, p0, p1),
+               _seg_point(q1, p0, p1))  # fmt: skip
+    m = np.array([[d1 @ d1, -d1 @ d2], [-d1 @ d2, d2 @ d2]])
+    if abs(np.linalg.det(m)) > 1e-14 * (d1 @ d1) * (d2 @ d2):
+        s, t = np.linalg.solve(m, [-d1 @ r, d2 @ r])
+        if 0 <= s <= 1 and 0 <= t <= 1:
+            best = min(best, np.linalg.norm(p0 + s * d1 - q0 - t * d2))
+    return best
+
+
+def folded_sheet(edge=0.1, gap=0.02, width=0.6, height=0.5):
+    """A rectangle folded over a cylinder of radius gap / 2 at x = 0 (two layers gap apart)."""
+    cloth = make_cloth(rectangle(width, height, edge, center=(width / 2 - 0.15, 0.0, 0.0)))
+    x = np.asarray(cloth.rest, np.float64).copy()
+    r = gap / 2
+    u = x[:, 0]
+    th = np.clip(u / r, 0.0, np.pi)
+    y = np.where(u <= 0, 0.0, r - r * np.cos(th))
+    xx = np.where(u <= 0, u, r * np.sin(th))
+    beyond = u > np.pi * r
+    xx = np.where(beyond, -(u - np.pi * r), xx)
+    y = np.where(beyond, 2 * r, y)
+    x[:, 0], x[:, 1] = xx, y
+    return cloth, x
+
+
+def brute_pairs(cloth, x, radius):
+    f = np.asarray(cloth.faces)
+    e = np.asarray(cloth.edges)
+    vt, ee = set(), set()
+    for v in range(len(x)):
+        for tri in f:
+            if v in tri:
+                continue
+            if np_point_triangle(x[v], *x[tri]) < radius:
+                vt.add((v, *tri))
+    for i in range(len(e)):
+        for j in range(i + 1, len(e)):
+            if len({*e[i], *e[j]}) < 4:
+                continue
+            if np_edge_edge(*x[e[i]], *x[e[j]]) < radius:
+                ee.add((*e[i], *e[j]))
+    return vt, ee
+
+
+def test_broad_phase_finds_the_brute_force_pairs():
+    cloth, x = folded_sheet()
+    x = x + np.random.default_rng(0).normal(0.0, 0.002, x.shape)
+    radius = 0.03
+    vt, ee = brute_pairs(cloth, x, radius)
+    assert len(vt) > 20 and len(ee) > 20
+    pairs = sc.check_pairs(_FIND(cloth, sc.make_self_contact(capacity=8), jnp.asarray(x),
+                                         radius))  # fmt: skip
+    idx, kind, valid = (np.asarray(a) for a in (pairs.idx, pairs.kind, pairs.valid))
+    got_vt = {
+        tuple(int(i) for i in r) for r, k, ok in zip(idx, kind, valid, strict=True) if ok and k == 0
+    }
+    got_ee = {
+        tuple(int(i) for i in r) for r, k, ok in zip(idx, kind, valid, strict=True) if ok and k == 1
+    }
+    assert got_vt == vt
+    assert got_ee == ee
+    # the distances agree with numpy's
+    d = np.asarray(jnp.linalg.norm(_GAP(jnp.asarray(x), pairs.idx, pairs.kind), axis=1))
+    for r, k, ok, dist in zip(idx, kind, valid, d, strict=True):
+        if ok:
+            ref = np_point_triangle(*x[r]) if k == 0 else np_edge_edge(*x[r])
+            assert dist == pytest.approx(ref, abs=1e-9)
+
+
+def test_capacity_overflow_is_reported():
+    cloth, x = folded_sheet()
+    pairs = _FIND(cloth, sc.make_self_contact(capacity=1), jnp.asarray(x), 0.2)
+    assert bool(pairs.overflow)
+    with pytest.raises(ValueError, match="self_contact_capacity"):
+        sc.check_pairs(pairs)
+
+
+def test_settings_are_validated():
+    with pytest.raises(ValueError, match="thickness"):
+        sc.make_self_contact(-1.0)
+    with pytest.raises(ValueError, match="capacity"):
+        sc.make_self_contact(capacity=0)
+    cloth, _ = folded_sheet()
+    with pytest.raises(ValueError, match="triangle height"):
+        sc.make_self_contact(0.08, cloth=cloth)
