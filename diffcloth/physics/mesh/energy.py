@@ -69,9 +69,13 @@ def dihedral_angles(cloth: ClothMesh, x):
 
 def face_dihedrals(cloth: ClothMesh, x):
     """(m, 3) dihedral angle across each face's edge k minus its rest angle, rad (0 on the
-    boundary), from the face stencil (each interior angle is computed by both of its faces)."""
-    p = x[cloth.stencil]  # (m, 6, 3)
-    return _stencil_theta(p, cloth.face_hinge >= 0, cloth.face_rest_angle)
+    boundary)."""
+    # each interior angle once per hinge, then gathered by both of its faces (the stencil form,
+    # `_stencil_theta`, computes it twice; the two agree: swapping the hinge's faces leaves
+    # the signed angle unchanged)
+    theta = dihedral_angles(cloth, x) - cloth.rest_angle
+    fh = cloth.face_hinge
+    return jnp.where(fh >= 0, theta[jnp.maximum(fh, 0)], 0.0)
 
 
 def _stencil_theta(p, interior, rest):

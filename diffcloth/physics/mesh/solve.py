@@ -27,6 +27,7 @@ import numpy as np
 
 from diffcloth.physics.mesh import colliders as mc
 from diffcloth.physics.mesh import energy, hessian, linsolve
+from diffcloth.physics.mesh import selfcontact_energy as sce
 from diffcloth.physics.mesh.fabric import Fabric
 from diffcloth.physics.mesh.linsolve import _block_jacobi, _cg
 from diffcloth.physics.mesh.topology import ClothMesh
@@ -121,6 +122,7 @@ class _Problem(NamedTuple):
     settings: SolverSettings
     mu0: float
     colliders: bool
+    self_contact: bool = False  # theta["self_contact"]: selfcontact.SelfContact
 
 
 def _cloth_of(theta) -> ClothMesh:
@@ -131,12 +133,20 @@ def _place(theta, x):
     return jnp.where(theta["free"][:, None], x, theta["x_pins"])
 
 
-def _energy(problem: _Problem, x, theta):
-    """The minimised energy in J at x (n, 3) (pinned vertices placed at x_pins)."""
+def _energy(problem: _Problem, x, theta, pairs=None):
+    """The minimised energy in J at x (n, 3) (pinned vertices placed at x_pins); with
+    self-contact, the barrier on `pairs` (default: those within d_hat of x)."""
     cloth, fabric = theta["cloth"], theta["fabric"]
     cols = theta["colliders"] if problem.colliders else None
     x = _place(theta, x)
     e = potential(cloth, fabric, x, theta["gravity"], cols)
+    if problem.self_contact:
+        sc = theta["self_contact"]
+        pairs = sce.find_pairs(cloth, sc, x, sc.thickness) if pairs is None else pairs
+        e = e + sce.barrier_energy(cloth, sc, x, pairs)
+        if problem.kind == "implicit":
+            mu = fabric.friction * sc.friction
+            e = e + sce.friction_energy(theta["sc_frame"], x, theta["x_n"], mu, _FRICTION_EPS)
     if problem.kind == "implicit":
         h, x_n = theta["h"], theta["x_n"]
         mass = energy.vertex_mass(cloth, fabric)
@@ -154,13 +164,18 @@ def _energy(problem: _Problem, x, theta):
     return e
 
 
-def _hessian(problem: _Problem, x, theta):
-    """The assembled PSD Hessian approximation (n, K, 3, 3) of `_energy` at x."""
+def _hessian(problem: _Problem, x, theta, pairs=None):
+    """The assembled PSD Hessian approximation (n, K, 3, 3) of `_energy` at x (self-contact:
+    the barrier's diagonal blocks only)."""
     cloth, fabric = theta["cloth"], theta["fabric"]
     x = _place(theta, x)
     n = cloth.num_vertices
     eye = jnp.eye(3, dtype=x.dtype)
     diag = jnp.zeros((n, 3, 3), x.dtype)
+    if problem.self_contact:
+        sc = theta["self_contact"]
+        pairs = sce.find_pairs(cloth, sc, x, sc.thickness) if pairs is None else pairs
+        diag = diag + sce.barrier_blocks(cloth, sc, x, pairs)
     scale = 1.0
     if problem.colliders:
         cols = theta["colliders"]
@@ -190,8 +205,8 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     mass = energy.vertex_mass(cloth, fabric)
     gnorm = jnp.sqrt(jnp.sum(theta["gravity"] ** 2))
     weight = mass * jnp.maximum(gnorm, 1e-3)
-    total = lambda x: _energy(problem, x, theta)
-    grad_fn = jax.grad(total)
+    total = total_0 = lambda x: _energy(problem, x, theta)
+    grad_fn = grad_0 = jax.grad(total)
     eye = jnp.eye(3, dtype=x0.dtype)
     alphas = jnp.asarray(0.5 ** np.arange(max(st.line_search, 1)), x0.dtype)  # 1, 1/2, ...
     armijo = 1e-4 if st.line_search > 1 else 0.0
@@ -207,34 +222,46 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         # count as converged and the step would not move
         return (k < st.max_iters) & ((res > tol) | (k == 0)) & jnp.isfinite(e) & (mu < 1e14)
 
-    def factor(x, mu):
-        hmat = _hessian(problem, x, theta)
+    def factor(x, mu, pairs=None):
+        hmat = _hessian(problem, x, theta, pairs)
         hmat = hmat.at[:, 0].add((mu * mass)[:, None, None] * eye[None])
         return linsolve.factor(hmat, cloth.neighbors, free)
 
     def body(c):
         x, e, g, mu, nu, eta, k, res, token, fresh = c
+        total, grad_fn, pairs = total_0, grad_0, None
+        if problem.self_contact:  # the pairs this step can reach (it moves no vertex > margin)
+            margin = sce.step_radius(cloth, theta["self_contact"])
+            pairs = sce.solve_pairs(cloth, theta["self_contact"], x, margin)
+            total = lambda y: _energy(problem, y, theta, pairs)
+            grad_fn = jax.grad(total)
         if st.linear_solver == "direct":
             # Newton-Krylov: CG on the exact Hessian (+ mu M), preconditioned by the LU of the
             # PSD approximation (refactored as `refactor_every` says); at negative curvature,
             # the approximation's own step
-            token = jax.lax.cond(fresh, lambda: factor(x, mu), lambda: token)
+            token = jax.lax.cond(fresh, lambda: factor(x, mu, pairs), lambda: token)
             pre = lambda r: linsolve.solve(token, r) * fmask
             hvp = lambda p: jax.jvp(grad_fn, (x,), (p,))[1]
             exact = lambda p: (hvp(p * fmask) + mu * mass[:, None] * p) * fmask
             p, ok, kry = _cg(exact, -g, pre, st.krylov_iters, eta)
             # CG on a float32 HVP can break down into non-finite values (a fine mesh's stiff
             # membrane): then the factorization's own step
-            p = jnp.where(ok & jnp.all(jnp.isfinite(p)), p, pre(-g))
+            # (a cond: the fallback's host solve runs only where it is taken)
+            p = jax.lax.cond(ok & jnp.all(jnp.isfinite(p)), lambda: p, lambda: pre(-g))
             ok = jnp.all(jnp.isfinite(p))
             p = jnp.where(ok, p, 0.0)
         else:
-            hmat = _hessian(problem, x, theta)
+            hmat = _hessian(problem, x, theta, pairs)
             hmat = hmat.at[:, 0].add((mu * mass)[:, None, None] * eye[None])
             apply_a = lambda p: hessian.matvec(cloth, hmat, p * fmask) * fmask
             pre = _block_jacobi(hessian.block_diagonal(hmat), free)
             p, ok, kry = _cg(apply_a, -g, pre, st.cg_iters, st.cg_tol)
-        p = p * fmask
+        p, shrink = p * fmask, 1.0
+        if problem.self_contact:  # step filter: within the margin, and no pair crosses (CCD)
+            step = jnp.max(jnp.sqrt(jnp.sum(p * p, axis=-1)))
+            shrink = jnp.minimum(1.0, margin / jnp.maximum(step, 1e-30))
+            shrink = shrink * sce.step_bound(x, p * shrink, pairs)
+            p = p * shrink
         gp = jnp.minimum(jnp.vdot(g, p), 0.0)  # the model's slope along p
         e_all = jax.vmap(lambda a: total(x + a * p))(alphas)
         # a decrease, up to the energy's rounding error (float32 cannot resolve the last steps
@@ -248,7 +275,8 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         else:
             # gain ratio; p^T H p = -g.p - mu p^T M p as CG solved (H + mu M) p = -g
             pmp = jnp.sum(mass[:, None] * p * p)
-            pred = alpha * (-gp) - 0.5 * alpha**2 * (-gp - mu * pmp)
+            # (p shrunk by the step filter: p^T H p = -shrink g.p - mu p^T M p)
+            pred = alpha * (-gp) - 0.5 * alpha**2 * (-shrink * gp - mu * pmp)
             rho = jnp.clip((e - e_try) / jnp.maximum(pred, jnp.finfo(x0.dtype).tiny), 0.0, 1.0)
             f = jnp.where(alpha * rho >= 0.75, 0.25, jnp.where(alpha * rho >= 0.25, 1.0, 2.0))
             grow, nu = nu, jnp.where(accept, 2.0, 2.0 * nu)
@@ -354,6 +382,7 @@ def equilibrium(
     colliders=None,
     x_pins=None,
     settings: SolverSettings = SolverSettings(),
+    self_contact=None,
 ) -> EquilibriumResult:
     """The static equilibrium reached from x_start: a local minimum of `potential`.
 
@@ -364,6 +393,8 @@ def equilibrium(
       colliders: MeshColliders or None.
       x_pins: (n, 3) m, where the pinned vertices are held (default x_start).
       settings: SolverSettings.
+      self_contact: `selfcontact.SelfContact` or None (off): the barrier keeps the cloth free
+        of self-intersection if x_start is (docs/physics.md, self-contact).
     Returns:
       EquilibriumResult; x is differentiable with respect to fabric, colliders, gravity, the
       rest geometry and x_pins (implicit function theorem), not x_start. Check `converged` (or
@@ -377,8 +408,10 @@ def equilibrium(
         "gravity": jnp.asarray(gravity, x_start.dtype),
         "x_pins": x_start if x_pins is None else jnp.asarray(x_pins, x_start.dtype),
         "free": ~cloth.pinned,
+        "self_contact": self_contact,
     }
-    problem = _Problem("static", settings, float(settings.mu0), mc.has_colliders(colliders))
+    problem = _Problem("static", settings, float(settings.mu0), mc.has_colliders(colliders),
+                       self_contact is not None)  # fmt: skip
     return _argmin(problem, theta, jax.lax.stop_gradient(x_start))
 
 
