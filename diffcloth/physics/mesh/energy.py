@@ -56,15 +56,20 @@ def membrane_energy(cloth: ClothMesh, fabric: Fabric, x):
     return jnp.sum(cloth.face_area * psi)
 
 
-def dihedral_angles(cloth: ClothMesh, x):
-    """(h,) signed dihedral angle of each hinge in rad (0 when flat), from the faces (a, b, c) and
-    (b, a, d) of hinge [a, b, c, d]."""
-    h = cloth.hinges
-    a, b, c, d = x[h[:, 0]], x[h[:, 1]], x[h[:, 2]], x[h[:, 3]]
+def hinge_angle(q):
+    """Signed dihedral angle in rad (0 when flat) of the hinge q (..., 4, 3) = [a, b, c, d]: the
+    faces (a, b, c) and (b, a, d) (unchanged by swapping them: [b, a, d, c])."""
+    a, b, c, d = q[..., 0, :], q[..., 1, :], q[..., 2, :], q[..., 3, :]
     na = jnp.cross(b - a, c - a)
     nb = jnp.cross(a - b, d - b)
     e = safe_normalize(b - a)
     return jnp.arctan2(jnp.sum(e * jnp.cross(na, nb), axis=-1), jnp.sum(na * nb, axis=-1))
+
+
+def dihedral_angles(cloth: ClothMesh, x):
+    """(h,) signed dihedral angle of each hinge in rad (0 when flat), from the faces (a, b, c) and
+    (b, a, d) of hinge [a, b, c, d]."""
+    return hinge_angle(x[cloth.hinges])
 
 
 def face_dihedrals(cloth: ClothMesh, x):

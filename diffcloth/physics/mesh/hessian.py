@@ -51,6 +51,31 @@ def _membrane_blocks(cloth: ClothMesh, fabric, x):
     return cloth.face_area[:, None, None, None, None] * (gn + geo)
 
 
+# hinge vertex (a, b, c, d) = 0..3 at each stencil slot of a face's edge k, -1 for none: [k, s, 0]
+# where the face is the hinge's (a, b, c), [k, s, 1] where it is (b, a, d) (`_stencil_theta`)
+_SLOT_VERTEX = np.full((3, 6, 2), -1)
+for _k in range(3):
+    for _j, (_s0, _s1) in enumerate([((_k + 1) % 3, (_k + 2) % 3), ((_k + 2) % 3, (_k + 1) % 3),
+                                     (_k, 3 + _k), (3 + _k, _k)]):  # fmt: skip
+        _SLOT_VERTEX[_k, _s0, 0], _SLOT_VERTEX[_k, _s1, 1] = _j, _j
+
+
+def _stencil_angle_jacobian(cloth: ClothMesh, x):
+    """(m, 3, 6, 3) derivative of each face's three hinge angles with respect to its stencil's
+    six vertices (zero on the boundary): each hinge's gradient (h, 4, 3), computed once, placed
+    in the stencils of its two faces."""
+    jh = jax.vmap(jax.grad(energy.hinge_angle))(x[cloth.hinges])  # (h, 4, 3)
+    fh = cloth.face_hinge
+    hk = jnp.maximum(fh, 0)
+    rolled = cloth.faces[:, np.array([1, 2, 0])]  # the vertex (k + 1) % 3 of each edge k
+    second = (cloth.hinges[hk, 0] != rolled).astype(jnp.int32)  # (m, 3)
+    j = jnp.asarray(_SLOT_VERTEX)[
+        jnp.arange(3)[None, :, None], jnp.arange(6)[None, None, :], second[:, :, None]
+    ]  # (m, 3, 6) fmt: skip
+    jt = jh.reshape(-1, 3)[hk[:, :, None] * 4 + jnp.maximum(j, 0)]  # (m, 3, 6, 3)
+    return jnp.where(((fh >= 0)[:, :, None] & (j >= 0))[..., None], jt, 0.0)
+
+
 def _bending_blocks(cloth: ClothMesh, fabric, x):
     """Gauss-Newton blocks of the bending energy: (m, 6, 6, 3, 3) per face stencil and
     (h, 6, 6, 3, 3) per hinge.
@@ -60,11 +85,7 @@ def _bending_blocks(cloth: ClothMesh, fabric, x):
     form, so they are added to the face blocks (weight A_f + the sum of its hinges' w_h), and
     only the cross quadrant -w_h J0^T D J1 (and its transpose) is a hinge block of its own:
     a quarter of the 12 x 12 blocks' work and half of their scatter."""
-    p = x[cloth.stencil]  # (m, 6, 3)
-    interior = cloth.face_hinge >= 0
-    jt = jax.vmap(jax.jacfwd(energy._stencil_theta), in_axes=(0, 0, 0))(
-        p, interior, cloth.face_rest_angle
-    )  # (m, 3, 6, 3)
+    jt = _stencil_angle_jacobian(cloth, x)  # (m, 3, 6, 3)
     jk = jnp.einsum("mkh,mhaj->mkaj", cloth.curvature_op, jt)  # (m, 3, 6, 3)
     d = energy.bending_matrix(fabric)
     hf = cloth.hinge_faces
