@@ -261,7 +261,7 @@ def _each_camera(one, cameras):
     camera); others one after another. The batch replaced a `lax.map` over the cameras, whose
     stacked outputs and backward residuals cost copies of every per-camera buffer: 0.64x the
     render gradient of the main job (26.7 -> 17.2 ms) and of drape_material (51.6 -> 36.4 ms),
-    same compile time (session 7 A/B, `benchmarks/fit_step.py` for the whole step)."""
+    same compile time (A/B of 2ff6f7e, 2026-11-25; `benchmarks/fit_step.py` for the whole step)."""
     leaves = [jax.tree_util.tree_flatten(c) for c in cameras]
     same = all(
         td == leaves[0][1]
