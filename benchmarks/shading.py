@@ -14,13 +14,25 @@ the shadow-map build alone ("mode": "shadow_maps") at --shadow-map-size texels. 
 --ambient-occlusion K (default 32; 0 skips), each shadow mode also runs with shadows and K sky
 directions of occluded ambient light ("ambient_occlusion": K; maps of shadow-map-size // 2).
 
+Fit-speed ratio (--ratio-sizes, default 64,128,256; "none" skips): the case a fit pays for, the
+seed net tessellated at --ratio-level (default 4, as the fit configs) from the control net, one
+directional light, two spheres, the ground plane, phong; forward and value-and-gradient w.r.t.
+the control net (geometry: rasterizer and shadow-map gradients), the lights and the appearance.
+Per size: "shadows": false, then shadows on the light with --ratio-ao sky directions (default 8)
+at shadow_quality "fit" ("shadow_ratio" lines: fwd_ratio and grad_ratio = shadowed / unshadowed,
+same process), and with --ratio-full also at "full" (256^2 maps, 32 directions: slow).
+
+Lines are appended to --out (default benchmarks/results/shading.jsonl; "-": stdout only), after
+a "meta" line.
+
     python benchmarks/shading.py [--size 256] [--repeats 5] [--modes phong,second_pass]
+    python benchmarks/shading.py --modes none --shadow-modes none        # the fit-speed ratio only
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -47,8 +59,15 @@ def _timed_ms(fn, *args, repeats):
     return round(timed(fn, *args, repeats=repeats).median * 1e3, 2)
 
 
+RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "shading.jsonl")
+_OUT = []  # the open results file, if any
+
+
+def _print(row):
+    emit(row, _OUT[0] if _OUT else None)
+
+
 def main():
-    emit(meta("shading"))
     parser = argparse.ArgumentParser()
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=5)
@@ -58,7 +77,15 @@ def main():
     parser.add_argument("--shadow-modes", default="phong,minnaert")
     parser.add_argument("--shadow-map-size", type=int, default=256)
     parser.add_argument("--ambient-occlusion", type=int, default=32)
+    parser.add_argument("--ratio-sizes", default="64,128,256")
+    parser.add_argument("--ratio-level", type=int, default=4)
+    parser.add_argument("--ratio-ao", type=int, default=8)
+    parser.add_argument("--ratio-full", action="store_true")
+    parser.add_argument("--out", default=RESULTS)
     args = parser.parse_args()
+    if args.out != "-":
+        _OUT.append(open(args.out, "a"))  # noqa: SIM115
+    _print(meta("shading", run="shadow_ratio"))
     surf = seed_surface()
     size = args.size
     cam = make_camera(
@@ -105,8 +132,9 @@ def main():
                 g = jax.jit(jax.value_and_grad(render_loss))
                 row["render_grad_ms"] = _timed_ms(g, (lights, app), repeats=args.repeats)
         row["device"] = device
-        print(json.dumps(row), flush=True)
+        _print(row)
     shadow_cases(args, surf, cam, app, tex, spheres, weights, device)
+    ratio_cases(args, spheres, device)
 
 
 def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
@@ -133,7 +161,7 @@ def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
     row = {"bench": "shading", "mode": "shadow_maps", "size": size, "shadow_map_size": map_size}
     row["fwd_ms"] = _timed_ms(build, lights, repeats=args.repeats)
     row["device"] = device
-    print(json.dumps(row), flush=True)
+    _print(row)
     for mode in modes:
         cases = [(False, 0), (True, 0)]
         if args.ambient_occlusion:
@@ -172,7 +200,74 @@ def shadow_cases(args, surf, cam, app, tex, spheres, weights, device):
                 g = jax.jit(jax.value_and_grad(render_loss))
                 row["render_grad_ms"] = _timed_ms(g, (lights, app), repeats=args.repeats)
             row["device"] = device
-            print(json.dumps(row), flush=True)
+            _print(row)
+
+
+def ratio_cases(args, spheres, device):
+    """Shadows + occlusion at fit speed against the unshadowed render (module docstring)."""
+    from diffcloth.shapes import make_plane
+    from diffcloth.surface import tessellate
+
+    sizes = [int(v) for v in args.ratio_sizes.split(",") if v and v != "none"]
+    x, z = np.meshgrid(np.linspace(-0.6, 0.6, 13), np.linspace(-0.45, 0.45, 10))
+    y = 0.25 * np.exp(-(x**2 + z**2) / 0.08) + 0.03 * np.sin(9 * x) * np.cos(5 * z)
+    net = jnp.asarray(np.stack([x, y, z], -1), jnp.float32)
+    level = args.ratio_level
+    ground = make_plane((0.0, 1.0, 0.0), -0.3, dtype=jnp.float32)
+    app = Lm.make_appearance(dtype=jnp.float32)
+    cases = [("none", 0), ("fit", args.ratio_ao)] + ([("full", 32)] if args.ratio_full else [])
+    for size in sizes:
+        cam = make_camera(
+            (0.9, 0.9, 1.6), (0.0, 0.0, 0.0), (0, 1, 0), width=size, height=size, fov_y=40.0
+        )
+        weights = jnp.asarray(np.random.default_rng(0).uniform(size=(size, size, 4)), jnp.float32)
+        base = None
+        for quality, ao in cases:
+            lights = Lm.make_lights(
+                directional=[((0.3, 1.0, 0.6), (1.0, 1.0, 1.0), 1.0)],
+                shadows=quality != "none",
+                dtype=jnp.float32,
+            )
+
+            def render_fn(net, lights, app, quality=quality, ao=ao, cam=cam):
+                return render(
+                    tessellate(net, level),
+                    cam,
+                    lights,
+                    "phong",
+                    app,
+                    spheres=spheres,
+                    planes=ground,
+                    ambient_occlusion=ao,
+                    shadow_quality="full" if quality == "none" else quality,
+                )
+
+            def render_loss(params, render_fn=render_fn, weights=weights):
+                return jnp.sum(weights * render_fn(*params))
+
+            row = {
+                "bench": "shading",
+                "mode": "phong",
+                "case": "shadow_ratio",
+                "size": size,
+                "level": level,
+                "vertices": int(tessellate(net, level).positions.shape[0]),
+                "shadows": quality != "none",
+                "shadow_quality": quality,
+                "ambient_occlusion": ao,
+            }
+            row["render_fwd_ms"] = _timed_ms(
+                jax.jit(render_fn), net, lights, app, repeats=args.repeats
+            )
+            g = jax.jit(jax.value_and_grad(render_loss))
+            row["render_grad_ms"] = _timed_ms(g, (net, lights, app), repeats=args.repeats)
+            if base is None:
+                base = row
+            else:
+                row["fwd_ratio"] = round(row["render_fwd_ms"] / base["render_fwd_ms"], 2)
+                row["grad_ratio"] = round(row["render_grad_ms"] / base["render_grad_ms"], 2)
+            row["device"] = device
+            _print(row)
 
 
 if __name__ == "__main__":

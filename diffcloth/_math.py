@@ -144,3 +144,47 @@ def materialize_grad(x):
 def _materialize_grad_jvp(primals, tangents):
     (x,), (t,) = primals, tangents
     return x, _reread(_scatter_copy(t))
+
+
+#: odd polynomial of atan on [0, 1] in a^2 (|error| < 3e-7 rad; a least-squares fit on Chebyshev
+#: nodes), constrained to sum to pi/4 so that the octant reflections of `fast_atan2` meet exactly
+ATAN_POLY = (
+    0.99999646824181809,
+    -0.3331770257354103,
+    0.19807482972860063,
+    -0.13224887697156121,
+    0.079385794980053714,
+    -0.033347844419200065,
+    0.0067148175731474025,
+)
+
+
+def fast_atan2(y, x):
+    """atan2(y, x) from a polynomial, |error| < 3e-7 rad. XLA's CPU atan2 and acos are scalar
+    library calls (about 35 and 70 ns an element against under 1 ns for a multiply-add), so
+    per-pixel code uses this. Continuous, with a continuous derivative, wherever atan2 is (the
+    octants meet exactly); 0 with gradient 0 at the origin.
+
+    Shapes: y (...), x (...) -> (...) elementwise, radians.
+    """
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    hi, lo = jnp.maximum(ax, ay), jnp.minimum(ax, ay)
+    ok = hi > 0
+    a = jnp.where(ok, lo, 0.0) / jnp.where(ok, hi, 1.0)
+    s = a * a
+    p = jnp.asarray(ATAN_POLY[-1], s.dtype)
+    for c in ATAN_POLY[-2::-1]:
+        p = p * s + c
+    r = a * p
+    r = jnp.where(ay > ax, 0.5 * np.pi - r, r)
+    r = jnp.where(x < 0, np.pi - r, r)
+    return jnp.where(y < 0, -r, r)
+
+
+def fast_acos(c):
+    """arccos(c) for c in [-1, 1] (clipped) via `fast_atan2`; gradient finite at +-1.
+
+    Shapes: c (...) -> (...) elementwise, radians.
+    """
+    c = jnp.clip(c, -1.0, 1.0)
+    return fast_atan2(safe_sqrt(1.0 - c * c), c)

@@ -37,6 +37,7 @@ from diffcloth.parameters import (
     param_value,
     scene_capture,
 )
+from diffcloth.render.shadow_quality import frame_maps
 from diffcloth.scene import cloth_kind
 from diffcloth.shapes import Plane, Sphere
 
@@ -206,20 +207,16 @@ def render_frame(
     if boxes is not None:
         box_verts, _, box_faces = render.boxes.box_mesh(boxes)
         occluders = (box_verts, box_faces)
-    maps = render.frame_shadow_maps(
+    maps, sky = frame_maps(
         surf,
         scene.lights,
-        spheres=spheres,
-        occluders=occluders,
-        size=getattr(scene, "shadow_map_size", 256),
-    )
-    sky = render.sky.frame_sky_maps(
-        surf,
         getattr(scene, "ambient_occlusion", 0),
+        quality=getattr(scene, "shadow_quality", "full"),
+        shadow_map_size=getattr(scene, "shadow_map_size", 256),
+        image_size=max(max(c.width, c.height) for c in scene.cameras),
         spheres=spheres,
         occluders=occluders,
         planes=planes,
-        size=max(getattr(scene, "shadow_map_size", 256) // 2, 8),
     )
 
     def one(camera, i, axes):

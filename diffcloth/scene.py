@@ -61,6 +61,8 @@ class Scene:
       shadow_map_size: static shadow-map size of the lights with shadows (texels).
       ambient_occlusion: static number of sky directions of the occluded ambient light (0: off;
         `render.sky`); its maps have shadow_map_size // 2 texels.
+      shadow_quality: static "full" or "fit": map sizes and filters of the shadow and sky maps
+        (`render.shadow_quality`; "fit": maps sized to the image, one tap each).
       cull: static; object-level frustum culling of the cloth in each camera.
       deform: static tuple of `config.render.DeformConfig` ([[deform]] waves / ripples applied
         to the rendered surface at each frame's time).
@@ -99,6 +101,7 @@ class Scene:
     plane_color: tuple = dataclasses.field(default=(0.6, 0.6, 0.6), metadata={"static": True})
     shadow_map_size: int = dataclasses.field(default=256, metadata={"static": True})
     ambient_occlusion: int = dataclasses.field(default=0, metadata={"static": True})
+    shadow_quality: str = dataclasses.field(default="full", metadata={"static": True})
     cull: bool = dataclasses.field(default=False, metadata={"static": True})
     deform: tuple = dataclasses.field(default=(), metadata={"static": True})
     display: Any = None
@@ -303,6 +306,7 @@ def build_scene(
         plane_color=tuple(rc.plane_color),
         shadow_map_size=rc.shadow_map_size,
         ambient_occlusion=rc.ambient_occlusion,
+        shadow_quality=rc.shadow_quality,
         cull=rc.cull,
         deform=tuple(config.deform),
         capture=_build_capture(config.cameras, rc, dtype),

@@ -71,8 +71,13 @@ def build_scene(
     stride=1,
     level=4,
     dtype=jnp.float32,
+    shadows=None,
+    ao=8,
 ):
-    """The diffcloth scene of a case with the given stiffnesses (Provot model)."""
+    """The diffcloth scene of a case with the given stiffnesses (Provot model). shadows: None
+    (the light casts none, no floor drawn, unoccluded ambient) or a `shadow_quality` ("fit",
+    "full"): the light casts shadows, the floor is drawn, and the ambient light is occluded
+    over `ao` sky directions, as in the Mitsuba frames."""
     import diffcloth as dc
     from diffcloth import config as cfg
 
@@ -125,6 +130,10 @@ def build_scene(
             "sphere_color": list(S.SPHERE_ALBEDO),
         },
     }
+    if shadows:
+        conf["render"].update(draw_planes=True, plane_color=list(S.FLOOR_ALBEDO),
+                              ambient_occlusion=ao, shadow_quality=shadows)  # fmt: skip
+        conf["lights"]["directional"][0]["shadows"] = True
     if spec["sphere"] is not None:
         conf["spheres"] = [{"center": list(spec["sphere"][0]), "radius": spec["sphere"][1]}]
     import warnings
@@ -250,7 +259,8 @@ def run_fit(case, data, n_fit, args, log_fn):
     from diffcloth.fit.settings import FitSettings
 
     dtype = np.float64 if args.x64 else np.float32
-    kw = dict(size=args.size, stride=args.stride, level=args.level, dtype=dtype)
+    kw = dict(size=args.size, stride=args.stride, level=args.level, dtype=dtype,
+              shadows=args.shadows, ao=args.ao)  # fmt: skip
     n_early = max(args.stride, int(round(0.35 * n_fit)) // args.stride * args.stride)
     early = build_scene(case[0], n_early, GUESS, **kw)
     scene = build_scene(case[0], n_fit, GUESS, **kw)
@@ -340,7 +350,10 @@ def run_case(scene_name, regime, args, results):
     head = dict(scene=scene_name, regime=regime, frames=F, fit_frames=n_fit,
                 size=int(data["images"].shape[2]))  # fmt: skip
     dtype = np.float64 if args.x64 else np.float32
-    kw = dict(size=head["size"], stride=args.stride, level=args.level, dtype=dtype)
+    kw = dict(size=head["size"], stride=args.stride, level=args.level, dtype=dtype,
+              shadows=args.shadows, ao=args.ao)  # fmt: skip
+    if args.shadows:
+        head.update(shadows=args.shadows, ambient_occlusion=args.ao, level=args.level)
     full_scene = build_scene(scene_name, F, GUESS, **kw)
     head["stride"] = args.stride
     x0 = np.asarray(full_scene.state.x)
@@ -480,6 +493,14 @@ def main(argv=None):
     ap.add_argument("--stride", type=int, default=3, help="render every k-th frame")
     ap.add_argument("--size", type=int, default=64, help="fit and compare at size^2 (box)")
     ap.add_argument("--level", type=int, default=3, help="diffcloth tessellation level")
+    ap.add_argument(
+        "--shadows",
+        choices=("fit", "full"),
+        default=None,
+        help="the light casts shadows at this shadow_quality, the floor is drawn and the "
+        "ambient light occluded over --ao sky directions (default: none of these)",
+    )
+    ap.add_argument("--ao", type=int, default=8, help="sky directions with --shadows")
     ap.add_argument("--no-profile", dest="profile", action="store_false")
     ap.add_argument(
         "--profile-at",

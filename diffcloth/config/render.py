@@ -46,6 +46,7 @@ class RenderConfig:
     plane_color: tuple = (0.6, 0.6, 0.6)
     shadow_map_size: int = 256
     ambient_occlusion: int = 0
+    shadow_quality: str = "full"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +115,7 @@ def _tiling(t: Mapping[str, Any], default: tuple, where: str) -> tuple:
 def parse_render(t: Mapping[str, Any]) -> RenderConfig:
     """Validate [render]."""
     from diffcloth.render import SHADING_MODES
+    from diffcloth.render.shadow_quality import SHADOW_QUALITIES
 
     w = "render"
     check_keys(t, dataclass_keys(RenderConfig), w)
@@ -141,6 +143,7 @@ def parse_render(t: Mapping[str, Any]) -> RenderConfig:
         ambient_occlusion=get_number(
             t, "ambient_occlusion", d.ambient_occlusion, where=w, lo=0, hi=256, integer=True
         ),
+        shadow_quality=get_choice(t, "shadow_quality", d.shadow_quality, SHADOW_QUALITIES, where=w),
     )
 
 

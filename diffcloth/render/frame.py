@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffcloth._math import materialize, safe_normalize
+from diffcloth.render import sky as skylib
 from diffcloth.render.boxes import BoxPoses, box_mesh, box_neighbors_np
 from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
 from diffcloth.render.fringe import fringe_depth, layer_in_front
@@ -142,7 +143,7 @@ def _plane_layer(
     diffuse, _ = blinn_phong(normal, -dirs, point, lights, appearance, vis)
     amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
     if sky is not None:
-        amb = amb * sky_visibility(sky, point, normal)[..., None]
+        amb = amb * skylib.layer_sky_visibility(sky, point, normal)[..., None]
     rgb = jnp.reshape(jnp.asarray(color, point.dtype), (1, 1, 3)) * (amb + diffuse)
     alpha = hit.astype(point.dtype)[..., None]
     return jnp.concatenate([rgb * alpha, alpha], axis=-1), depth
@@ -175,18 +176,18 @@ def _occluder_mesh(surface, occluders):
     )
 
 
-def frame_shadow_maps(surface, lights: Lights, *, spheres=None, occluders=None, size: int = 256):
+def frame_shadow_maps(surface, lights: Lights, *, spheres=None, occluders=None, **options):
     """Shadow data of one frame: the cloth `surface` (plus `occluders` triangles) as the mesh
-    occluder, `spheres` analytic; None when no light casts shadows (see `shadows.shadow_maps`).
+    occluder, `spheres` analytic; None when no light casts shadows. options: size (default 256),
+    taps, fast of `shadows.shadow_maps`.
 
     Shapes: surface positions (n, 3) m, sphere centres (k, 3) m, occluders (q, 3) / (r, 3) -> ShadowMaps
       (num_lights, size, size).
     """
     if not lights.casts_shadows:
         return None
-    return build_shadow_maps(
-        lights, mesh=_occluder_mesh(surface, occluders), spheres=spheres, size=size
-    )
+    mesh = _occluder_mesh(surface, occluders)
+    return build_shadow_maps(lights, mesh=mesh, spheres=spheres, **options)
 
 
 def _object_mask(surface, camera: Camera):
@@ -246,6 +247,8 @@ def surface_gbuffer(
         "bitangent": surface.bitangents,
         "uv": surface.uv,
     }
+    if (vsky := skylib.vertex_sky_attribute(sky, pos, nrm)) is not None:
+        attrs["sky"] = vsky  # ambient occlusion per vertex, both sides, interpolated
     if shading == "gouraud":
         # per-vertex lighting, for both sides: from the eye point (perspective) or the common
         # direction of the parallel rays (orthographic, oblique, axonometric)
@@ -277,9 +280,9 @@ def surface_gbuffer(
         fn = _face_normals(pos, faces, nrm)
         face_normal = jnp.where(buf.mask[..., None], fn[jnp.maximum(buf.surface_id, 0)], 0.0)
     color = a.get("color")
+    # the raster marks counter-clockwise (normal side) pixels as front-facing
+    back = (buf.mask & ~buf.front_facing & two_sided)[..., None]
     if two_sided:
-        # the raster marks counter-clockwise (normal side) pixels as front-facing
-        back = (buf.mask & ~buf.front_facing)[..., None]
         normal = jnp.where(back, -normal, normal)
         bitangent = jnp.where(back, -bitangent, bitangent)
         if face_normal is not None:
@@ -296,7 +299,7 @@ def surface_gbuffer(
         face_normal=face_normal,
         color=color,
         visibility=shadow_visibility(shadows, a["position"], normal),
-        ambient_visibility=sky_visibility(sky, a["position"], normal),
+        ambient_visibility=skylib.pixel_sky_visibility(sky, a, a["position"], normal, back),
     )
     return gb, buf, eye_rays
 
@@ -328,6 +331,7 @@ def render(
     ambient_occlusion: int = 0,
     sky_maps: SkyMaps | None = None,
     batch_axes: tuple = (),
+    shadow_quality: str = "full",
 ):
     """Rasterize, shade and composite a cloth surface.
 
@@ -365,6 +369,8 @@ def render(
         ambient environment on every drawn surface (`diffcloth.render.sky`). Its maps use
         `shadow_map_size` // 2 texels (at least 8).
       sky_maps: optional precomputed `sky.frame_sky_maps(...)` (shared by several cameras).
+      shadow_quality: static map sizes and filters of the maps built here: "full" or "fit"
+        (maps sized to this camera's image, one tap each; `render.shadow_quality`).
       return_cloth_mask: also return the visible cloth coverage (H, W) in [0, 1]: the antialiased
         cloth alpha (soft at silhouettes, so differentiable w.r.t. the geometry there) times the
         part of each pixel not covered by a sphere or plane drawn in front. The image is unchanged.
@@ -382,26 +388,20 @@ def render(
     """
     if shading not in MODES:
         raise ValueError(f"shading must be one of {MODES}, got {shading!r}")
-    maps = shadow_maps
+    maps, sky = shadow_maps, sky_maps
     if boxes is not None and occluders is None:
         box_verts, _, box_faces = box_mesh(boxes)
         occluders = (box_verts, box_faces)  # boxes cast shadows too
-    if maps is None and lights.casts_shadows:
-        maps = frame_shadow_maps(
-            surface, lights, spheres=spheres, occluders=occluders, size=shadow_map_size
-        )
-    sky = sky_maps
-    if sky is None and ambient_occlusion:
-        from diffcloth.render.sky import frame_sky_maps
+    if (maps is None and lights.casts_shadows) or (sky is None and ambient_occlusion):
+        from diffcloth.render.shadow_quality import frame_maps
 
-        sky = frame_sky_maps(
-            surface,
-            ambient_occlusion,
-            spheres=spheres,
-            occluders=occluders,
-            planes=planes,
-            size=max(shadow_map_size // 2, 8),
-        )
+        new_maps, new_sky = frame_maps(
+            surface, lights, ambient_occlusion if sky is None else 0, quality=shadow_quality,
+            shadow_map_size=shadow_map_size, image_size=max(camera.width, camera.height),
+            spheres=spheres, occluders=occluders, planes=planes,
+        )  # fmt: skip
+        maps = new_maps if maps is None else maps
+        sky = new_sky if sky is None else sky
     gb, buf, eye_rays = surface_gbuffer(
         surface,
         camera,

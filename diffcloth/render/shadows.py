@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import safe_div, safe_norm, safe_normalize, safe_sqrt
+from diffcloth._math import fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
 from diffcloth.render.camera import Camera, look_at, orthographic, perspective, project
 from diffcloth.render.lights import Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize
@@ -69,6 +69,10 @@ class ShadowMaps:
       casting: static tuple of the light indices (0..nl-1, directional first) that cast shadows.
       num_directional: static count of the casting lights that are directional (the first ones).
       size: static shadow-map size S in texels.
+      taps: static filter taps per axis of the lookups (`shadow_visibility`); 1: one bilinear
+        tap (no blocker search, penumbra about a texel wide), the fast setting.
+      fast: static; the sphere discs' angles from `_math.fast_atan2` (a polynomial) instead of
+        XLA's atan2 (a scalar library call: most of the lookup's cost on the CPU).
     """
 
     lights: Lights
@@ -81,6 +85,8 @@ class ShadowMaps:
     casting: tuple = dataclasses.field(metadata={"static": True})
     num_directional: int = dataclasses.field(metadata={"static": True})
     size: int = dataclasses.field(metadata={"static": True})
+    taps: int = dataclasses.field(default=4, metadata={"static": True})
+    fast: bool = dataclasses.field(default=False, metadata={"static": True})
 
 
 def _smoothstep(x):
@@ -143,6 +149,8 @@ def shadow_maps(
     mesh=None,
     spheres: Sphere | None = None,
     size: int = 256,
+    taps: int = 4,
+    fast: bool = False,
 ) -> ShadowMaps | None:
     """Build the per-frame shadow data of every shadow-casting light.
 
@@ -153,6 +161,8 @@ def shadow_maps(
         bodies' triangles appended. Differentiable in the positions.
       spheres: optional analytic sphere occluders; differentiable.
       size: static shadow-map size in texels (maps cover the mesh's bounding sphere).
+      taps: static filter taps per axis of every lookup of these maps (see `shadow_visibility`).
+      fast: static; polynomial arctangents in the sphere occlusion (`ShadowMaps.fast`).
     Returns:
       ShadowMaps, or None when no light casts shadows.
     """
@@ -166,11 +176,15 @@ def shadow_maps(
         )
     if not isinstance(size, int | np.integer) or size < 8:
         raise ValueError(f"shadow map size must be an int >= 8, got {size!r}")
+    if not isinstance(taps, int | np.integer) or not 1 <= taps <= 8:
+        raise ValueError(f"shadow taps must be an int in [1, 8], got {taps!r}")
     casting = tuple(i for i, f in enumerate(lights.shadows) if f)
     n_dir = sum(1 for i in casting if i < nd)
     sph = spheres.batched() if spheres is not None else None
     if mesh is None or mesh[1].shape[0] == 0:
-        return ShadowMaps(lights, sph, None, None, None, None, None, casting, n_dir, int(size))
+        return ShadowMaps(
+            lights, sph, None, None, None, None, None, casting, n_dir, int(size), int(taps), fast
+        )
     positions, faces = mesh[0], jnp.asarray(mesh[1]).astype(jnp.int32)
     neighbors = mesh[2] if len(mesh) > 2 and mesh[2] is not None else edge_neighbors(faces)
     center, radius = _bound(positions)
@@ -204,7 +218,9 @@ def shadow_maps(
         return _render_map(positions, faces, neighbors, cam)
 
     maps, zmin = jax.lax.map(one, (view, proj, near, far))
-    return ShadowMaps(lights, sph, maps, view, proj, texel, zmin, casting, n_dir, int(size))
+    return ShadowMaps(
+        lights, sph, maps, view, proj, texel, zmin, casting, n_dir, int(size), int(taps), fast
+    )
 
 
 def _bilinear(tex, u, v):
@@ -268,21 +284,28 @@ def _map_visibility(tex, view, proj, texel, zmin, tan_t, is_point, pts, nrm, to_
         bias = bias0[:, None] + tx[:, None] * slope[:, None] * (1.0 + dist)
         return cov, depth, bias
 
-    # blocker search over the region the light's disc can reach from the receiver
-    search = jnp.clip(tan_t * jnp.maximum(z - zmin, 0.0) / tx, 1.0, MAX_RADIUS)
-    cov, depth, bias = sample(search, _grid(max(taps - 1, 2), tx.dtype))
-    wb = cov * _smoothstep((z[:, None] - bias - depth) / tau[:, None])
-    wsum = jnp.sum(wb, axis=-1)
-    d_block = safe_div(jnp.sum(wb * depth, axis=-1), wsum)
-    radius = jnp.where(wsum > 0, tan_t * jnp.maximum(z - d_block, 0.0) / tx, 1.0)
-    radius = jnp.clip(radius, 1.0, MAX_RADIUS)
-    cov, depth, bias = sample(radius, _grid(taps, tx.dtype))
+    if taps == 1:
+        # one bilinear tap at the receiver (its 2 x 2 texels): the filter radius multiplies a
+        # zero offset, so the blocker search that sets it would change nothing; skipped
+        cov, depth, bias = sample(jnp.zeros_like(z), _grid(1, tx.dtype))
+    else:
+        # blocker search over the region the light's disc can reach from the receiver
+        search = jnp.clip(tan_t * jnp.maximum(z - zmin, 0.0) / tx, 1.0, MAX_RADIUS)
+        cov, depth, bias = sample(search, _grid(max(taps - 1, 2), tx.dtype))
+        wb = cov * _smoothstep((z[:, None] - bias - depth) / tau[:, None])
+        wsum = jnp.sum(wb, axis=-1)
+        d_block = safe_div(jnp.sum(wb * depth, axis=-1), wsum)
+        radius = jnp.where(wsum > 0, tan_t * jnp.maximum(z - d_block, 0.0) / tx, 1.0)
+        radius = jnp.clip(radius, 1.0, MAX_RADIUS)
+        cov, depth, bias = sample(radius, _grid(taps, tx.dtype))
     occ = cov * _smoothstep((z[:, None] - bias - depth) / tau[:, None])
     vis = 1.0 - jnp.clip(jnp.mean(occ, axis=-1), 0.0, 1.0)
     return jnp.where(ok, vis, 1.0)
 
 
-def sphere_visibility(points, to_light, spheres: Sphere, tan_theta, light_distance=None):
+def sphere_visibility(
+    points, to_light, spheres: Sphere, tan_theta, light_distance=None, *, fast: bool = False
+):
     """Fraction of a disc light visible past analytic spheres.
 
     Args:
@@ -291,18 +314,20 @@ def sphere_visibility(points, to_light, spheres: Sphere, tan_theta, light_distan
       tan_theta: () tan of the light's angular radius (> 0).
       light_distance: optional (N,) distance to a point light (spheres whose centre is farther
         than the light do not occlude it).
+      fast: static; angles from `_math.fast_atan2` (|error| < 3e-7 rad) instead of atan2.
     Returns:
       (N,) visibility in [0, 1]: prod over spheres of 1 - occluded fraction (module docstring).
     """
     theta = jnp.arctan(tan_theta)
+    atan2 = fast_atan2 if fast else jnp.arctan2
 
     def one(c, r):
         v = c[None] - points
         t = jnp.sum(v * to_light, axis=-1)
         d = safe_norm(v - t[:, None] * to_light, axis=-1)
         dist2 = jnp.sum(v * v, axis=-1)
-        beta = jnp.arctan2(d, t)
-        alpha = jnp.arctan2(r, safe_sqrt(dist2 - r * r))
+        beta = atan2(d, t)
+        alpha = atan2(r, safe_sqrt(dist2 - r * r))
         small = jnp.maximum(jnp.minimum(alpha, theta), 1e-6)
         frac = jnp.minimum(small / theta, 1.0) ** 2
         occ = frac * _smoothstep((alpha + theta - beta) / (2.0 * small))
@@ -313,20 +338,22 @@ def sphere_visibility(points, to_light, spheres: Sphere, tan_theta, light_distan
     return jnp.prod(jax.vmap(one)(spheres.center, spheres.radius), axis=0)
 
 
-def shadow_visibility(maps: ShadowMaps | None, points, normals, *, taps: int = 4):
+def shadow_visibility(maps: ShadowMaps | None, points, normals, *, taps: int | None = None):
     """Per-light visibility at receivers.
 
     Args:
       maps: from `shadow_maps` (None: no shadows).
       points: (..., 3) world positions in m; normals: (..., 3) surface normals (either side; need
         not be unit). Both differentiable.
-      taps: static filter taps per axis (taps^2 filter taps, (taps - 1)^2 blocker-search taps).
+      taps: static filter taps per axis (taps^2 filter taps, (taps - 1)^2 blocker-search taps;
+        1: one bilinear tap, no blocker search); None: the maps' own `taps`.
     Returns:
       (..., nl) visibility in [0, 1] of every light (directional first); 1 for lights without
       shadows. None when maps is None.
     """
     if maps is None:
         return None
+    taps = maps.taps if taps is None else int(taps)
     lights = maps.lights
     nd = lights.direction.shape[0]
     nl = nd + lights.point_position.shape[0]
@@ -362,9 +389,9 @@ def shadow_visibility(maps: ShadowMaps | None, points, normals, *, taps: int = 4
     if maps.spheres is not None:
         inf = jnp.full(pts.shape[:1], jnp.inf, pts.dtype)
         ldist = jnp.stack([inf if d is None else d for d in dists])
-        vis = vis * jax.vmap(lambda tl, tt, ld: sphere_visibility(pts, tl, maps.spheres, tt, ld))(
-            to_light, tan_t, ldist
-        )
+        vis = vis * jax.vmap(
+            lambda tl, tt, ld: sphere_visibility(pts, tl, maps.spheres, tt, ld, fast=maps.fast)
+        )(to_light, tan_t, ldist)
     # scatter the casting lights into all nl slots (others fully visible)
     full = jnp.ones((nl, pts.shape[0]), pts.dtype).at[idx].set(vis)
     return jnp.moveaxis(full, 0, -1).reshape(*batch, nl)

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import safe_div, safe_normalize
+from diffcloth._math import fast_acos, fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
 from diffcloth.render.lights import SOFTNESS_RANGE, Lights
 from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility
 from diffcloth.shapes import Plane, Sphere
@@ -73,12 +73,21 @@ class SkyMaps:
       directions: (K, 3) unit sky directions.
       plane_normal: (npl, 3) unit normals of the occluding planes, or None.
       ramp: () 1/K: width in dot(d, n_plane) of the planes' horizon ramp.
+      spheres: the sphere occluders taken analytically (`sphere_form_factor`) instead of per
+        direction, or None.
+      per_vertex: static; the cloth's A is evaluated at its vertices (both sides) and
+        interpolated by the rasterizer (`pixel_sky_visibility`) instead of at every pixel.
+      layer_stride: static; the ray-cast layers (spheres, planes) evaluate A at every
+        layer_stride-th pixel and upsample it bilinearly (`layer_sky_visibility`); 1: every pixel.
     """
 
     shadows: ShadowMaps | None
     directions: jax.Array
     plane_normal: jax.Array | None
     ramp: jax.Array
+    spheres: Sphere | None = None
+    per_vertex: bool = dataclasses.field(default=False, metadata={"static": True})
+    layer_stride: int = dataclasses.field(default=1, metadata={"static": True})
 
 
 def sky_maps(
@@ -89,6 +98,10 @@ def sky_maps(
     planes: Plane | None = None,
     size: int = 128,
     dtype=None,
+    taps: int = SKY_TAPS,
+    analytic_spheres: bool = False,
+    per_vertex: bool = False,
+    layer_stride: int = 1,
 ) -> SkyMaps | None:
     """Build the sky-visibility data of one frame.
 
@@ -100,6 +113,12 @@ def sky_maps(
         to lie on its free side).
       size: static shadow-map size in texels of each direction's map.
       dtype: float dtype (default: the mesh's, else JAX's default float).
+      taps: static filter taps per axis of each direction's lookup (1: one bilinear tap).
+      analytic_spheres: static; the spheres' occlusion as their exact cosine-weighted form
+        factor (`sphere_form_factor`, multiplied in) instead of per sky direction: exact at any
+        K, and cheaper.
+      per_vertex: static; the cloth's occlusion per vertex, interpolated (`SkyMaps.per_vertex`).
+      layer_stride: static pixel stride of the spheres' and planes' occlusion (`SkyMaps`).
     Returns:
       SkyMaps or None (k == 0).
     """
@@ -113,6 +132,9 @@ def sky_maps(
     dirs = jnp.asarray(sky_directions(int(k)), dtype)
     soft = sky_softness(int(k))
     maps = None
+    analytic = spheres.batched() if analytic_spheres and spheres is not None else None
+    if analytic is not None:
+        spheres = None
     if mesh is not None or spheres is not None:
         z = jnp.zeros((0,), dtype)
         sky = Lights(
@@ -128,10 +150,10 @@ def sky_maps(
             point_softness=z,
             shadows=(True,) * int(k),
         )
-        maps = shadow_maps(sky, mesh=mesh, spheres=spheres, size=int(size))
+        maps = shadow_maps(sky, mesh=mesh, spheres=spheres, size=int(size), taps=int(taps))
     pn = None if planes is None else safe_normalize(planes.batched().normal.astype(dtype))
     ramp = jnp.asarray(1.0 / k, dtype)
-    return SkyMaps(maps, dirs, pn, ramp)
+    return SkyMaps(maps, dirs, pn, ramp, analytic, bool(per_vertex), int(layer_stride))
 
 
 def _ramp(x):
@@ -155,16 +177,103 @@ def sky_visibility(sky: SkyMaps | None, points, normals):
     w = jnp.maximum(jnp.einsum("...c,kc->...k", n, sky.directions), 0.0)  # (..., K)
     vis = jnp.ones_like(w)
     if sky.shadows is not None:
-        vis = shadow_visibility(sky.shadows, points, normals, taps=SKY_TAPS)
+        vis = shadow_visibility(sky.shadows, points, normals)
     if sky.plane_normal is not None:
         cos = sky.directions @ sky.plane_normal.T  # (K, npl)
         pv = jnp.prod(_ramp(cos / sky.ramp + 1.0), axis=-1)  # (K,)
         vis = vis * jnp.reshape(pv, (1,) * (vis.ndim - 1) + pv.shape)
-    return jnp.clip(safe_div(jnp.sum(w * vis, -1), jnp.sum(w, -1)), 0.0, 1.0)
+    a = safe_div(jnp.sum(w * vis, -1), jnp.sum(w, -1))
+    if sky.spheres is not None:
+        a = a * jnp.prod(1.0 - sphere_form_factor(points, n, sky.spheres), axis=-1)
+    return jnp.clip(a, 0.0, 1.0)
+
+
+def vertex_sky_attribute(sky: SkyMaps | None, points, normals):
+    """A per-vertex attribute (n, 2): A of the front (normal) and back side of each vertex, for
+    a `sky.per_vertex` SkyMaps; None otherwise (A is then evaluated per pixel).
+
+    Shapes: points (n, 3) m, normals (n, 3) -> (n, 2).
+    """
+    if sky is None or not sky.per_vertex:
+        return None
+    return jnp.stack(
+        [sky_visibility(sky, points, normals), sky_visibility(sky, points, -normals)], -1
+    )
+
+
+def pixel_sky_visibility(sky: SkyMaps | None, attributes: dict, points, normals, back):
+    """A per pixel: the interpolated `vertex_sky_attribute` ("sky" in the rasterizer's
+    attributes; its back side where `back`) or `sky_visibility` at the pixels.
+
+    Shapes: points (H, W, 3) m, normals (H, W, 3), back (H, W, 1) bool -> (H, W).
+    """
+    if sky is None:
+        return None
+    if "sky" in attributes:
+        a = attributes["sky"]
+        return jnp.where(back[..., 0], a[..., 1], a[..., 0])
+    return sky_visibility(sky, points, normals)
+
+
+def layer_sky_visibility(sky: SkyMaps | None, points, normals):
+    """A of a ray-cast layer (spheres, planes): at every pixel, or with `sky.layer_stride` f > 1
+    at every f-th pixel of every f-th row, bilinearly upsampled (A is low-frequency; continuous
+    in the receivers, so in the parameters, either way).
+
+    Shapes: points (H, W, 3) m, normals (H, W, 3) -> (H, W); None when sky is None.
+    """
+    f = 1 if sky is None else sky.layer_stride
+    if f <= 1:
+        return sky_visibility(sky, points, normals)
+    H, W = points.shape[:2]
+    o = f // 2
+    low = sky_visibility(sky, points[o::f, o::f], normals[o::f, o::f])
+    return jax.image.resize(low, (H, W), "linear")
+
+
+def sphere_form_factor(points, normals, spheres: Sphere):
+    """Cosine-weighted fraction of the hemisphere around each normal that each sphere covers.
+
+    Exact (the differential-area-to-sphere form factor): cos(beta) / h^2 while the sphere lies
+    wholly above the receiver's horizon (h = distance to the centre / radius, beta the angle
+    between the normal and the centre), 0 wholly below, and the closed form of Lagarde and de
+    Rousiers ("Moving Frostbite to PBR", 2014) in between, which meets both continuously.
+    Receivers inside a sphere are taken as on its surface.
+
+    Shapes: points (..., 3) m, normals (..., 3) unit, spheres (k,) -> (..., k) in [0, 1].
+    """
+    sph = spheres.batched()
+    lead = (1,) * (points.ndim - 1)
+    v = jnp.reshape(sph.center, lead + sph.center.shape) - points[..., None, :]  # (..., k, 3)
+    dist = safe_norm(v, axis=-1)
+    h = jnp.maximum(dist / jnp.reshape(sph.radius, lead + sph.radius.shape), 1.0 + 1e-3)
+    cb = jnp.clip(safe_div(jnp.sum(v * normals[..., None, :], -1), dist), -1.0, 1.0)
+    h2 = h * h
+    x = jnp.sqrt(h2 - 1.0)
+    # horizon-crossing branch on safe inputs (the others' infinite slopes would make NaNs)
+    crossing = jnp.abs(h * cb) < 1.0
+    c = jnp.where(crossing, cb, 0.0)
+    sb = jnp.sqrt(1.0 - c * c)
+    y = jnp.clip(-x * c / sb, -1.0, 1.0)
+    sy = safe_sqrt(1.0 - y * y)
+    part = (c * fast_acos(jnp.where(crossing, y, 0.0)) - x * sb * sy) / (math.pi * h2)
+    part = part + fast_atan2(sb * sy, x) / math.pi
+    full = jnp.maximum(cb, 0.0) / h2
+    return jnp.clip(jnp.where(crossing, part, jnp.where(h * cb >= 1.0, full, 0.0)), 0.0, 1.0)
 
 
 def frame_sky_maps(
-    surface, k: int, *, spheres=None, occluders=None, planes=None, size: int = 128
+    surface,
+    k: int,
+    *,
+    spheres=None,
+    occluders=None,
+    planes=None,
+    size: int = 128,
+    taps: int = SKY_TAPS,
+    analytic_spheres: bool = False,
+    per_vertex: bool = False,
+    layer_stride: int = 1,
 ) -> SkyMaps | None:
     """Sky data of one frame: the cloth `surface` (plus `occluders` triangles (positions (q, 3),
     faces (r, 3))) as the mesh occluder, `spheres` and `planes` analytic; None when k == 0.
@@ -180,4 +289,8 @@ def frame_sky_maps(
         planes=planes,
         size=size,
         dtype=surface.positions.dtype,
+        taps=taps,
+        analytic_spheres=analytic_spheres,
+        per_vertex=per_vertex,
+        layer_stride=layer_stride,
     )

@@ -13,7 +13,7 @@ from diffcloth.render.rays import _dot3, ray_sphere
 from diffcloth.render.sampling import _normalize3
 from diffcloth.render.shade import blinn_phong
 from diffcloth.render.shadows import ShadowMaps, shadow_visibility
-from diffcloth.render.sky import SkyMaps, sky_visibility
+from diffcloth.render.sky import SkyMaps, layer_sky_visibility
 from diffcloth.shapes import Sphere
 
 
@@ -82,7 +82,7 @@ def _sphere_layer(
     diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance, vis)
     amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
     if sky is not None:  # ambient occlusion
-        amb = amb * sky_visibility(sky, point, normal)[..., None]
+        amb = amb * layer_sky_visibility(sky, point, normal)[..., None]
     albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
     color = albedo * (amb + diffuse) + jnp.reshape(appearance.specular, (1, 1, 3)) * specular
     rgba = jnp.concatenate([color * alpha[..., None], alpha[..., None]], axis=-1)

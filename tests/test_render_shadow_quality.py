@@ -1,0 +1,130 @@
+"""Shadow quality presets (render/shadow_quality.py): "fit" map sizes and filters, the config key,
+the analytic sphere form factor of ambient occlusion, and the gradient of a whole simulated and
+rendered video with shadows and occlusion on at the "fit" preset vs central FD in float64."""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffcloth.render.shadow_quality import FIT_SKY_MIN, shadow_settings
+from diffcloth.render.sky import sky_maps, sky_visibility, sphere_form_factor
+from diffcloth.shapes import make_sphere
+
+CONFIG = {
+    "net": {
+        "rows": 4,
+        "cols": 4,
+        "width": 0.6,
+        "height": 0.6,
+        "center": [0.0, 0.5, 0.0],
+        "pinned": "top_corners",
+    },
+    "sim": {"num_frames": 2, "num_substeps": 4, "integrator": "implicit"},
+    "spheres": [{"center": [0.1, 0.22, 0.05], "radius": 0.15}],
+    "planes": [{"normal": [0.0, 1.0, 0.0], "offset": 0.0}],
+    "render": {
+        "width": 20,
+        "height": 20,
+        "level": 2,
+        "draw_planes": True,
+        "ambient_occlusion": 8,
+        "shadow_quality": "fit",
+    },
+    "camera": {"eye": [0.3, 1.6, 1.3], "target": [0.0, 0.25, 0.0]},
+    "lights": {
+        "ambient": [0.3, 0.3, 0.3],
+        "directional": [{"direction": [0.3, 1.0, 0.2], "shadows": True, "softness": 3.0}],
+    },
+}
+
+
+def test_fit_preset_sizes_and_validation():
+    full = shadow_settings("full", 256, 64)
+    assert (full.map_size, full.taps, full.sky_size, full.analytic_spheres) == (256, 4, 128, False)
+    for image, light, sky in ((64, 64, FIT_SKY_MIN), (128, 128, 32), (100, 104, 32), (512, 256, 128)):
+        st = shadow_settings("fit", 256, image)
+        assert (st.map_size, st.sky_size, st.taps, st.sky_taps) == (light, sky, 1, 1)
+        assert st.analytic_spheres
+    with pytest.raises(ValueError, match="shadow_quality must be one of"):
+        shadow_settings("fast", 256, 64)
+
+
+def test_config_key():
+    from diffcloth.config import ConfigError, parse_config
+    from diffcloth.scene import build_scene
+
+    scene = build_scene(parse_config(CONFIG))
+    assert scene.shadow_quality == "fit" and scene.ambient_occlusion == 8
+    assert build_scene(parse_config({**CONFIG, "render": {}})).shadow_quality == "full"
+    with pytest.raises(ConfigError, match="shadow_quality"):
+        parse_config({**CONFIG, "render": {"shadow_quality": "fast"}})
+
+
+def test_sphere_form_factor_is_the_many_direction_limit():
+    """The analytic form factor against the per-direction estimate with 256 sky directions, for
+    normals from facing the sphere to facing away (through the horizon-crossing branch)."""
+    sph = make_sphere([(0.0, 0.5, 0.0)], [0.25])
+    a = np.linspace(0.0, math.pi, 13)
+    nrm = jnp.asarray(np.stack([np.sin(a), np.cos(a), 0 * a], -1))
+    pts = jnp.zeros_like(nrm)
+    ff = np.asarray(sphere_form_factor(pts, nrm, sph))[:, 0]
+    est = 1.0 - np.asarray(sky_visibility(sky_maps(256, spheres=sph), pts, nrm))
+    np.testing.assert_allclose(ff, est, atol=3e-3)
+    assert ff[0] == pytest.approx(0.25) and ff[-1] == 0.0  # (r / d)^2 straight above
+    fast = sky_maps(8, spheres=sph, analytic_spheres=True)
+    assert fast.shadows is None  # no shadow maps at all for a sphere-only scene
+    np.testing.assert_allclose(sky_visibility(fast, pts, nrm), 1.0 - ff, atol=1e-6)
+
+    def f(t):
+        return sphere_form_factor(pts[:1], jnp.stack([jnp.sin(t), jnp.cos(t), 0.0])[None], sph)[
+            0, 0
+        ]
+
+    for t in (0.3, 1.2, 1.6, 2.0):  # above the horizon, crossing it
+        fd = (f(t + 1e-6) - f(t - 1e-6)) / 2e-6
+        np.testing.assert_allclose(jax.grad(f)(t), fd, rtol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.gate  # the gating slow tier (.ci/run)
+def test_video_gradient_with_fit_shadows_and_occlusion_matches_fd():
+    """d(video loss) / d(stretch (through the rollout), light direction, sphere collider centre)
+    with a shadowed light and 8-direction occlusion at the "fit" preset, float64, vs central FD;
+    each parameter separately (a sum could hide one wrong term)."""
+    from diffcloth import pipeline
+    from diffcloth.config import parse_config
+    from diffcloth.scene import build_scene
+
+    scene = build_scene(parse_config(CONFIG), dtype=jnp.float64)
+    w = jnp.asarray(np.random.default_rng(7).uniform(0.5, 1.5, (1, 2, 20, 20, 3)))
+
+    def loss(p):
+        sph = dataclasses.replace(scene.spheres, center=p["center"])
+        col = dataclasses.replace(
+            scene.colliders,
+            spheres=dataclasses.replace(scene.colliders.spheres, center=p["center"]),
+        )
+        sc = dataclasses.replace(scene, spheres=sph, colliders=col)
+        params = {"stretch": p["stretch"], "light_direction": p["dir"]}
+        return jnp.sum(w * pipeline.simulate_and_render(sc, params))
+
+    x = {
+        "stretch": jnp.asarray(scene.material.stretch),
+        "dir": jnp.asarray(scene.lights.direction),
+        "center": jnp.asarray(scene.spheres.center),
+    }
+    g = jax.jit(jax.grad(loss))(x)
+    f = jax.jit(loss)
+    rng = np.random.default_rng(3)
+    for name in x:
+        v = jnp.asarray(rng.normal(size=np.shape(x[name])))
+        ad = float(jnp.vdot(g[name], v))
+        eps = 1e-6 * max(1.0, float(jnp.abs(x[name]).max()))
+        step = lambda s, name=name, v=v: {**x, name: x[name] + s * v}  # noqa: E731
+        fd = (float(f(step(eps))) - float(f(step(-eps)))) / (2 * eps)
+        assert abs(ad) > 1e-3, name  # not vacuous
+        np.testing.assert_allclose(ad, fd, rtol=1e-4, err_msg=name)
