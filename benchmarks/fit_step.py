@@ -17,7 +17,7 @@ values, targets rendered at [truth] (as `diffcloth fit` does). One JSON line per
   forward_ms loss value only (jitted), median
   step_ms    value and gradient (jitted), median;  backward_ms = step_ms - forward_ms
   xla_flags  XLA_FLAGS in that process after its imports (`import diffcloth` adds its CPU loop
-             option since the eighth session; older trees do not),
+             option since 0d0b6fd, 2026-11-27; older trees do not),
 and one line per config with bench "fit_step_ratio": step_ratio, forward_ratio, backward_ratio,
 compile_ratio (new / base, below 1: faster). With --single: the "new" lines only (tree "this",
 commit from git where there is one), no base and no ratio.

@@ -414,7 +414,7 @@ def load_note(*groups) -> list[str]:
     return [
         "- Load at the start of each run (1-minute load average on "
         f"{_meta(groups[0][1]).get('cpus', '?')} cores): " + ", ".join(notes) + ". Above ~2 the "
-        "machine was shared (other sessions were compiling and testing): absolute times are then "
+        "machine was shared (other jobs were compiling and testing): absolute times are then "
         "inflated and noisy, and only the same-run ratios mean something."
     ]
 
@@ -526,14 +526,15 @@ FIT_STEP_NOTES = [
     "forward 8 ms and backward ~70 ms per step (240 substeps, thunk-launch bound: ~50,000 XLA "
     "thunks per step, ~200 per substep in forward plus backward); render forward ~30 ms and "
     "backward ~45-75 ms for 10 images of 64^2 (compute bound, ~180 fusions per image). Compile "
-    "(first call): ~30 s idle for d26acf4 and db964f2 (the lead's idle run); not split here.",
+    "(first call): ~30 s idle for d26acf4 and db964f2 (one idle run); not split here.",
     "- Tried without a gain: optimization barriers in the contact (removed before fusion), "
     "materialized cotangents, a Jacobian over the whole sphere contact (projection included: "
     "1.4x slower), unrolling the substep scan (2x: 7 % fewer thunks, slower compile), not "
     "checkpointing the frames (8 %), checkpointing whole substeps.",
-    "- Eighth session: the thunk launches are gone for small nets. `import diffcloth` sets XLA's "
-    "CPU small-while-loop threshold to 2 MB (`diffcloth/runtime.py`, `DIFFCLOTH_XLA_TUNING=off` "
-    "to opt out), so the substep scans of the 13 x 10 nets and their transposes each compile "
+    "- Since 0d0b6fd (2026-11-27): the thunk launches are gone for small nets. "
+    "`import diffcloth` sets XLA's CPU small-while-loop threshold to 2 MB "
+    "(`diffcloth/runtime.py`, `DIFFCLOTH_XLA_TUNING=off` to opt out), "
+    "so the substep scans of the 13 x 10 nets and their transposes each compile "
     "into one function: backward 0.30x (main job) and 0.37x (drape_material) of d26acf4's in "
     "the table's run. The 'new' rows are commit 41cefa9 plus that change (the commit after it).",
     "",
