@@ -71,7 +71,7 @@ def _stencil_angle_jacobian(cloth: ClothMesh, x):
     second = (cloth.hinges[hk, 0] != rolled).astype(jnp.int32)  # (m, 3)
     j = jnp.asarray(_SLOT_VERTEX)[
         jnp.arange(3)[None, :, None], jnp.arange(6)[None, None, :], second[:, :, None]
-    ]  # (m, 3, 6) fmt: skip
+    ]  # (m, 3, 6)
     jt = jh.reshape(-1, 3)[hk[:, :, None] * 4 + jnp.maximum(j, 0)]  # (m, 3, 6, 3)
     return jnp.where(((fh >= 0)[:, :, None] & (j >= 0))[..., None], jt, 0.0)
 
