@@ -57,9 +57,9 @@ def check_config(
         _check_values(scene, config.fit.initial, "fit.initial")
         _check_stable_values(scene, config.fit, stability)
         if config.fit.targets is not None:
-            from diffcloth.experiment import load_targets
+            from diffcloth.experiment import load_fit_targets
 
-            load_targets(config.fit, scene)
+            load_fit_targets(config.fit, scene)
     return scene
 
 

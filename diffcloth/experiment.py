@@ -16,7 +16,7 @@ import numpy as np
 
 from diffcloth import config as cfg
 from diffcloth.config.fit import FitSettings, check_devices, parse_fit
-from diffcloth.fit_targets import load_targets  # noqa: F401  (re-exported)
+from diffcloth.fit_targets import load_fit_targets, load_targets  # noqa: F401  (re-exported)
 
 __all__ = ["FitSettings", "check_devices", "parse_fit", "run_fit_config", "video_strip"]
 
@@ -122,6 +122,41 @@ def _method_section(result, settings) -> str:
     if getattr(result, "ties", None):
         text += f"\n\nTied parameters (not optimised): {result.ties.describe()}."
     return text
+
+
+#: the [fit] LM keys' config defaults: only keys set to something else reach the fit, so that
+#: method "staged" keeps the recipe's own values (`diffcloth.fit.front.RECIPE_LM`) otherwise
+_LM_DEFAULTS = {"lm_xtol": 1e-5, "lm_ftol": 1e-6, "lm_tau": 1e-3, "lm_polish": 10}
+
+
+def _lm_tolerances(settings) -> dict:
+    """The LM tolerances, damping and polish a [fit] section sets (those off their defaults)."""
+    return {k: getattr(settings, k) for k, d in _LM_DEFAULTS.items() if getattr(settings, k) != d}
+
+
+def _footage_section(settings, target_masks, fitted_masks) -> str:
+    """report.md: the footage loss's settings and the fitted silhouettes' IoU."""
+    spec = settings.footage
+    text = (
+        f"colour {spec.color} (scale {spec.color_scale:g}, weight {spec.color_weight:g}"
+        + (
+            f", on the target's cloth pixels grown by {spec.color_margin} px"
+            if spec.color_region == "cloth"
+            else ", every pixel"
+        )
+        + f"); silhouette {spec.mask} (weight {spec.mask_weight:g})"
+    )
+    if target_masks is None:
+        return text + "."
+    from_file = spec.masks != "color" and Path(settings.targets).suffix == ".npz"
+    source = "the target file's masks" if from_file else "a colour key"
+    a, b = fitted_masks > 0.5, np.asarray(target_masks) > 0.5
+    union = np.logical_or(a, b).sum(axis=(-2, -1))
+    iou = np.where(union > 0, np.logical_and(a, b).sum(axis=(-2, -1)) / np.maximum(union, 1), 1.0)
+    return (
+        text + f"; target masks from {source}. Silhouette IoU of the fit against the target "
+        f"(masks > 1/2, every camera and frame): mean {iou.mean():.3f}, min {iou.min():.3f}."
+    )
 
 
 def run_fit_config(
@@ -230,9 +265,9 @@ def run_fit_config(
     _check_values(sc, settings.truth, "truth")
     _check_values(sc, settings.initial, "fit.initial")
     _check_stable_values(sc, settings, stability)
-    targets = None
+    targets = masks = None
     if settings.targets is not None:
-        targets = load_targets(settings, sc)
+        targets, masks = load_fit_targets(settings, sc)
     problem = problem_record(config_path, targets, smoke=smoke)
     out = OutputDir(
         out_dir, overwrite=overwrite, resume=resume, inputs=fit_inputs(config_path, init_from)
@@ -253,8 +288,8 @@ def run_fit_config(
             raise UsageError(f"--resume: {err}") from None
     try:
         summary = _run_fit(
-            config_path, settings, sc, targets, out, ckpt, stop, progress, title, extra_sections,
-            checkpoint_every,
+            config_path, settings, sc, (targets, masks), out, ckpt, stop, progress, title,
+            extra_sections, checkpoint_every,
         )  # fmt: skip
     except BaseException:
         out.discard()
@@ -278,15 +313,18 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
     tmp = out.tmp
     (tmp / "config.toml").write_bytes(config_path.read_bytes())
     t0 = time.perf_counter()
+    targets, masks = targets
+    footage = settings.footage.loss() if settings.footage is not None else None
+    loss_kind = "l2" if footage is not None else settings.loss
     free_init = {
         n: settings.initial.get(n, pipeline.param_value(sc, n))
         for n in settings.free
         if n not in (settings.ties or {})
     }
-    method = choose_method(settings.method, settings.loss, num_scalars(free_init))
+    method = choose_method(settings.method, loss_kind, num_scalars(free_init))
     # a single-start LM fit renders its target and fitted videos with its own compiled step
     # (`diffcloth.fit.lm_video`): one large program to compile instead of two
-    reuse = lm_video_ok(settings, method, list(free_init))
+    reuse = footage is None and lm_video_ok(settings, method, list(free_init))
     if targets is None:
         if reuse and set(settings.truth) == set(free_init):
             video = lm_video(sc, settings.truth, loss=settings.loss, stages=settings.stages)
@@ -316,7 +354,8 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
         settings.steps,
         optimizer,
         init=settings.initial,
-        loss=settings.loss,
+        loss=footage or settings.loss,
+        masks=masks,
         method=method,
         ties=settings.ties,
         stages=settings.stages,
@@ -326,6 +365,7 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
         patience=settings.patience,
         lm_patience=settings.lm_patience,
         lm_stage_steps=settings.lm_stage_steps,
+        **_lm_tolerances(settings),
         progress=progress,
         checkpoint_path=tmp / "checkpoint.npz",
         checkpoint_every=checkpoint_every,
@@ -366,11 +406,20 @@ def _run_fit(config_path, settings, sc, targets, out, ckpt, stop, progress, titl
     ident = None
     if not interrupted:  # a partial report skips the slow parts
         fitted = {k: np.asarray(v) for k, v in result.params.items()}
-        if reuse and set(fitted) == set(free_init):
+        if footage is not None:
+            fitted_video, fitted_masks = jax.jit(
+                functools.partial(pipeline.simulate_and_render, with_mask=True)
+            )(sc, fitted)
+            fitted_video = np.asarray(fitted_video)
+            extra_sections = {
+                **(extra_sections or {}),
+                "Footage loss": _footage_section(settings, masks, np.asarray(fitted_masks)),
+            }
+        elif reuse and set(fitted) == set(free_init):
             fitted_video = lm_video(sc, fitted, loss=settings.loss, stages=settings.stages)
         else:
             fitted_video = np.asarray(jax.jit(pipeline.simulate_and_render)(sc, fitted))
-        if settings.identifiability and result.status != "nonfinite":
+        if settings.identifiability and result.status != "nonfinite" and footage is None:
             ident = dcfit.scene_identifiability(
                 sc, targets, result.params, noise_sigma=settings.noise_sigma, ties=settings.ties
             )

@@ -282,6 +282,7 @@ def load_config(path) -> Config:
 
 def schema() -> dict[str, tuple[str, ...]]:
     """{section: allowed keys} of every section (array-of-table entries by their entry name)."""
+    from diffcloth.config.footage import FOOTAGE_KEYS
     from diffcloth.physics.mesh.fabric import FABRIC_FIELDS
     from diffcloth.physics.rigid import BODY_KEYS
     from diffcloth.render import appearance_fields
@@ -303,6 +304,7 @@ def schema() -> dict[str, tuple[str, ...]]:
         "coupling": ("two_way",),
         "deform": dataclass_keys(DeformConfig),
         "fit": fit_keys,
+        "fit.footage": FOOTAGE_KEYS,
         "cloth": dataclass_keys(ClothConfig),
         "fabric": ("preset", "bend", "stretch", *FABRIC_FIELDS),
         "cylinders": dataclass_keys(CylinderConfig),

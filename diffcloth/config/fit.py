@@ -1,7 +1,8 @@
 """Fit sections of the schema: [fit], [fit.initial] and [truth] (docs/config.md).
 
 [fit]   free = ["stretch", "bend"]   parameters to fit (diffcloth.pipeline.PARAMETERS)
-        steps = 60, learning_rate = 0.05, loss = "l2" | "l1" | "pyramid", patience = 30,
+        steps = 60, learning_rate = 0.05, loss = "l2" | "l1" | "pyramid" | "footage" (the
+        footage loss of [fit.footage]: diffcloth.config.footage), patience = 30,
         schedule = "cosine" (Adam's rate decays to 10% over the steps, damping the
         oscillation around the optimum) | "constant",
         noise = 0.0 (std of Gaussian noise added to synthetic targets), seed = 0,
@@ -17,7 +18,10 @@
         x64 = false (fit in float64: `diffcloth fit` turns JAX's x64 on, as --x64 does),
         ties = { shear = "stretch", bend = "1e-4 * stretch" }   (tied parameters, not fitted)
         targets = "folder"   (instead of [truth]: PNGs, one subfolder cam0, cam1, ... per camera
-                              or the PNGs directly for a single camera)
+                              or the PNGs directly for a single camera; or an .npz file with
+                              images (cams, F, H, W, 3) and masks (cams, F, H, W))
+        targets_make = "command"   (named in the error when the targets are missing)
+        target_downsample = 1      (box-average k x k pixel blocks of the targets)
         target_glob = "*.png", target_cameras = ["cam0", ...], target_frames = [first, stop],
         target_stride = 1, colorspace = "auto" | "srgb" | "linear"   (target layout, see
                               diffcloth.experiment.load_targets)
@@ -69,6 +73,9 @@ class FitSettings:
     lm_tau: float = 1e-3
     lm_polish: int = 10
     x64: bool = False
+    footage: Any = None
+    target_downsample: int = 1
+    targets_make: str | None = None
 
     def engine(self, **runtime):
         """The loop settings (`diffcloth.fit.settings.FitSettings`) of this [fit] section: the
@@ -183,6 +190,7 @@ def _check_fittable(name: str, arr, value) -> None:
 def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitSettings:
     """Validate [fit], [fit.initial] and [truth] (ConfigError names the bad key and range)."""
     from diffcloth import pipeline
+    from diffcloth.config.footage import parse_footage
     from diffcloth.fit.scene_fit import LOSSES
 
     if "truth" in sections and "fit" not in sections:
@@ -233,9 +241,16 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
     if targets is None and not truth:
         raise cfg.ConfigError('give target images ([fit] targets = "folder") or a [truth] table')
     if targets is not None:
-        if not isinstance(targets, str):
-            raise cfg.ConfigError("[fit] targets must be a folder path (string)")
+        if not isinstance(targets, str) or not targets.strip():
+            raise cfg.ConfigError(
+                "[fit] targets must be a folder of images or an .npz file (a path string)"
+            )
         targets = str((base_dir or Path(".")) / targets)
+    make = t.get("targets_make")
+    if make is not None and (not isinstance(make, str) or not make.strip()):
+        raise cfg.ConfigError(
+            f"[fit] targets_make = {make!r} must be the command that makes the targets (a string)"
+        )
     multistart = cfg.get_number(t, "multistart", 1, where=w, lo=1, hi=64, integer=True)
     devices = cfg.get_number(t, "devices", 1, where=w, lo=1, hi=4096, integer=True)
     check_devices(devices, multistart, "[fit] devices")
@@ -272,17 +287,25 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         frames = (int(frames[0]), int(frames[1]))
     if targets is None:
         for key in ("target_glob", "target_cameras", "target_frames", "target_stride",
-                    "colorspace"):  # fmt: skip
+                    "colorspace", "target_downsample", "targets_make"):  # fmt: skip
             if key in t:
                 raise cfg.ConfigError(f"[fit] {key} needs [fit] targets (a folder of images)")
     ident = t.get("identifiability", True)
     if not isinstance(ident, bool):
         raise cfg.ConfigError("[fit] identifiability must be true or false")
+    loss = cfg.get_choice(t, "loss", "l2", LOSSES + ("footage",), where=w)
+    footage = parse_footage(t, loss)
+    if footage is not None and targets is None:
+        raise cfg.ConfigError(
+            '[fit] loss = "footage" compares with footage: give [fit] targets (a folder of '
+            "images or an .npz file); synthetic [truth] targets have no footage masks"
+        )
     return FitSettings(
         free=tuple(free),
         steps=cfg.get_number(t, "steps", 60, where=w, lo=1, integer=True),
         learning_rate=cfg.get_number(t, "learning_rate", 0.05, where=w, lo=0, lo_inclusive=False),
-        loss=cfg.get_choice(t, "loss", "l2", LOSSES, where=w),
+        loss=loss,
+        footage=footage,
         patience=cfg.get_number(t, "patience", 30, where=w, lo=1, integer=True),
         schedule=cfg.get_choice(t, "schedule", "cosine", ("cosine", "constant"), where=w),
         noise=cfg.get_number(t, "noise", 0.0, where=w, lo=0, hi=1),
@@ -296,6 +319,10 @@ def parse_fit(sections: Mapping[str, Any], base_dir: Path | None = None) -> FitS
         target_cameras=cams,
         target_frames=frames,
         target_stride=cfg.get_number(t, "target_stride", 1, where=w, lo=1, integer=True),
+        target_downsample=cfg.get_number(
+            t, "target_downsample", 1, where=w, lo=1, hi=64, integer=True
+        ),
+        targets_make=make,
         colorspace=cfg.get_choice(t, "colorspace", "auto", ("auto", "srgb", "linear"), where=w),
         initial=initial,
         truth=truth,

@@ -39,9 +39,10 @@ def fit(
     x64: bool | None = None,
     init: Mapping[str, Any] | None = None,
     constraints: Mapping[str, Any] | None = None,
-    loss: str = "l2",
+    loss: Any = "l2",
     ties: Mapping[str, Any] | None = None,
     settings=None,
+    masks=None,
     **fit_kwargs,
 ):
     """Fit the named scene parameters to target videos: the one entry point for every engine.
@@ -71,10 +72,14 @@ def fit(
         False. JAX's x64 is on for this call only; the scene and targets are cast.
       init: initial physical values (default: the scene's own values).
       constraints: name -> constraint (default `default_constraint(name)`).
-      loss: "l2", "l1" or "pyramid" (multi-scale, wider basin of convergence).
+      loss: "l2", "l1" or "pyramid" (multi-scale, wider basin of convergence), or a
+        `diffcloth.fit.footage.FootageLoss` (robust colour + silhouette, for footage diffcloth
+        did not render; a sum of squares, so LM and the staged recipe fit it).
       ties: {name: "other" | "c * other"} tied parameters (`diffcloth.fit.ties`): not optimised,
         set from their source (which must be free) at every evaluation; reported in the result.
       settings: a `FitSettings`; the keyword arguments override its fields.
+      masks: the target cloth masks (cameras, T, H, W) in [0, 1], for a `FootageLoss` with a
+        mask term or a `color_margin`.
       fit_kwargs: any other `FitSettings` field (multistart, spread, seed, devices,
         learning_rate, tol, patience, progress, callback, checkpoint_path, lm_patience, ...),
         `hook` (LM per-step hook), `stop` (interrupt event) and `resume` (a checkpoint).
@@ -88,6 +93,7 @@ def fit(
     from diffcloth import pipeline
     from diffcloth.fit.auto import cast_floats, has_contact
     from diffcloth.fit.constraints import Positive
+    from diffcloth.fit.footage import FootageLoss
     from diffcloth.fit.lm import num_scalars
     from diffcloth.fit.losses import as_target_array, validate_targets
     from diffcloth.fit.scene_fit import LOSSES, choose_method, default_constraint
@@ -134,8 +140,15 @@ def fit(
         from diffcloth.render.detail import check_bump_detail
 
         check_bump_detail(scene, free)
-    if loss not in LOSSES:
-        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    footage = loss if isinstance(loss, FootageLoss) else None
+    if footage is not None:
+        loss = "l2"  # a sum of squares at full resolution: what the engine choice reads
+        if masks is not None:
+            masks = as_target_array(masks, "masks")
+    elif loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES} or a FootageLoss, got {loss!r}")
+    elif masks is not None:
+        raise ValueError("masks are for a footage loss (loss=FootageLoss(...))")
     targets = as_target_array(targets, "targets")
     if targets.ndim == 4 and len(scene.cameras) == 1:
         targets = targets[None]
@@ -165,17 +178,18 @@ def fit(
                 else:
                     guess[n] = v + s.spread * 0.1 * rng.standard_normal(np.shape(v))
             inits.append(guess)
-    job = _Job(engine, loss, s, given, tie_set, cons, run, contact)
+    job = _Job(engine, loss, s, given, tie_set, cons, run, contact, footage)
     if use_x64 and dtype != np.float64:
         with jax.enable_x64(True):
             result = job(cast_floats(scene, jnp.float64), jnp.asarray(targets, jnp.float64),
-                         [{k: np.asarray(v, np.float64) for k, v in d.items()} for d in inits])  # fmt: skip
+                         [{k: np.asarray(v, np.float64) for k, v in d.items()} for d in inits],
+                         masks)  # fmt: skip
         for r in getattr(result, "results", [result]):  # the caller's dtype, as numpy
             for attr in ("params", "initial", "last_finite"):
                 d = getattr(r, attr)
                 setattr(r, attr, {k: np.asarray(v, dtype) for k, v in d.items()})
     else:
-        result = job(scene, jnp.asarray(targets, dtype), inits)
+        result = job(scene, jnp.asarray(targets, dtype), inits, masks)
     for r in getattr(result, "results", [result]):
         r.auto = {"engine": engine, **(r.auto or {}), "method": s.method, "x64": use_x64}
     return result
@@ -193,8 +207,9 @@ class _Job:
     cons: dict
     run: dict
     contact: bool
+    footage: Any = None
 
-    def __call__(self, scene, targets, inits):
+    def __call__(self, scene, targets, inits, masks=None):
         from diffcloth.fit.auto import SCAN_RISE, hints, scan_candidates, scan_start
         from diffcloth.fit.lm import fit_lm, fit_lm_multistart
         from diffcloth.fit.loop import fit_multistart, fit_params
@@ -211,30 +226,36 @@ class _Job:
         s, cons, run, engine = self.s, self.cons, self.run, self.engine
         init, multistart = inits[0], len(inits)
         record = None
+        loss_fn, res_fn = None, None
+        if self.footage is not None:
+            from diffcloth.fit.footage import footage_loss_fn, footage_residual_fn, prepare_targets
+
+            targets = prepare_targets(scene, targets, masks, self.footage, value_range=(None, 2.0))
+            loss_fn = footage_loss_fn(self.footage, self.ties)
+            res_fn = footage_residual_fn(self.footage, self.ties)
         if self.engine == "adam":
             kw = dict(
                 settings=s, loss_args=(targets, scene), resume=run["resume"], stop=run["stop"]
             )
+            loss_fn = loss_fn or _loss_fn(self.loss, self.ties)
             if multistart <= 1:
-                result = fit_params(_loss_fn(self.loss, self.ties), init, cons, **kw)
+                result = fit_params(loss_fn, init, cons, **kw)
             else:
                 devices = s.devices if s.devices and s.devices > 1 else None
-                result = fit_multistart(
-                    _loss_fn(self.loss, self.ties), inits, cons, devices=devices, **kw
-                )
+                result = fit_multistart(loss_fn, inits, cons, devices=devices, **kw)
         else:
             spec = s.stages
             if self.engine == "staged" and spec is None:
                 spec = recipe_stages(init, cons)
             stage_args, stage_names, levels, priors = _lm_stages(scene, self.loss, spec)
-            res_fn = _residual_fn(levels, self.ties)
+            res_fn = res_fn or _residual_fn(levels, self.ties)
             scan = s.scan if s.scan is not None else ("auto" if s.method == "auto" else False)
             if scan not in (False, "none") and multistart <= 1 and run["resume"] is None:
                 rule = scan in ("auto", True)
                 names = scan_candidates(init, cons) if rule else dict(scan)
                 if names:  # on the full resolution over the first half of the frames
-                    lw, fw = stage_weights(self.loss, levels, targets.shape[1], Stage(0, 0.5),
-                                           np.dtype(targets.dtype))  # fmt: skip
+                    lw, fw = stage_weights(self.loss, levels, scene.video_shape[1], Stage(0, 0.5),
+                                           np.dtype(scene.material.density.dtype))  # fmt: skip
                     init, record = scan_start(res_fn, init, names, (targets, scene),
                                               (jnp.asarray(lw), jnp.asarray(fw)),
                                               rise=SCAN_RISE if rule else None)  # fmt: skip
@@ -260,7 +281,7 @@ class _Job:
                     result = fit_lm_multistart(res_fn, inits, cons, **common)
             if engine == "staged":
                 result.method = "staged"
-        ident = self._identifiability(scene, targets, result)
+        ident = None if self.footage else self._identifiability(scene, targets, result)
         for r in getattr(result, "results", [result]):
             if multistart <= 1 and (record is not None or engine == "staged"):
                 r.initial = {k: np.asarray(v) for k, v in inits[0].items()}  # before the scan
@@ -268,7 +289,7 @@ class _Job:
             # a float32 fit the caller asked for (x64=False) gets no "use x64" hint
             x64 = np.dtype(scene.material.density.dtype) == np.float64 or "x64" in self.given
             r.hints = hints(r, cons=cons, auto=record, x64=x64, contact=self.contact, ident=ident,
-                            loss=self.loss)  # fmt: skip
+                            loss=None if self.footage else self.loss)  # fmt: skip
             if self.ties:
                 _add_tied(r, self.ties)
         return result

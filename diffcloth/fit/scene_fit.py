@@ -192,7 +192,10 @@ def _fit_staged_schedule(res_fn, init, cons, sched, stage_args, stage_names, los
                 f"stages: free {unknown} of stage '{name}' are not fitted (free, untied: {free})"
             )
         scan = {st.scan[0]: st.scan[1]} if st.scan else None
-        stages.append(ParamStage(sub, stage_args=[args], scan=scan, name=name))
+        largs = None
+        if set(sub) < set(free) and st.frames < 1:  # its own step program anyway: a short scene
+            args, largs = window_scene(args, loss_args)
+        stages.append(ParamStage(sub, stage_args=[args], scan=scan, loss_args=largs, name=name))
     stages.append(ParamStage(free, stage_args=[stage_args[-1]], name=stage_names[-1]))
     out = fit_staged(res_fn, init, cons, stages=stages, loss_args=loss_args, settings=s)
     result = out.results[-1]
@@ -211,6 +214,27 @@ def _fit_staged_schedule(res_fn, init, cons, sched, stage_args, stage_names, los
         for row, r in zip(out.stages, out.results, strict=True)
     ]  # fmt: skip
     return result
+
+
+def window_scene(stage_args, loss_args):
+    """A stage's (level weights, frame weights) and (targets, scene) cut to its frame window:
+    the scene simulates only the window's frames (the simulation is causal, so the residuals
+    inside the window are the same and nothing outside is simulated). A staged stage whose free
+    set is a strict subset (e.g. air damping alone on the free fall) compiles a step of its own
+    anyway, so the shorter scene costs no extra compilation.
+
+    Shapes: stage_args (L,), (T,) -> (L,), (n,); targets (cams, T, ...) (an array or a pytree
+    of them) -> (cams, n, ...), with n the window's rendered frames."""
+    import dataclasses
+
+    lw, fw = stage_args
+    n = int(np.count_nonzero(np.asarray(fw)))
+    targets, scene = loss_args
+    if n >= np.shape(fw)[0]:
+        return stage_args, None
+    short = dataclasses.replace(scene, num_frames=n * scene.frame_stride)
+    cut = jax.tree_util.tree_map(lambda a: a[:, :n], targets)
+    return (lw, fw[:n]), (cut, short)
 
 
 def _add_tied(result, ties) -> None:
