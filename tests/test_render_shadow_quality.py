@@ -45,7 +45,12 @@ CONFIG = {
 def test_fit_preset_sizes_and_validation():
     full = shadow_settings("full", 256, 64)
     assert (full.map_size, full.taps, full.sky_size, full.analytic_spheres) == (256, 4, 128, False)
-    for image, light, sky in ((64, 64, FIT_SKY_MIN), (128, 128, 32), (100, 104, 32), (512, 256, 128)):
+    for image, light, sky in (
+        (64, 64, FIT_SKY_MIN),
+        (128, 128, 32),
+        (100, 104, 32),
+        (512, 256, 128),
+    ):
         st = shadow_settings("fit", 256, image)
         assert (st.map_size, st.sky_size, st.taps, st.sky_taps) == (light, sky, 1, 1)
         assert st.analytic_spheres
@@ -128,3 +133,24 @@ def test_video_gradient_with_fit_shadows_and_occlusion_matches_fd():
         fd = (float(f(step(eps))) - float(f(step(-eps)))) / (2 * eps)
         assert abs(ad) > 1e-3, name  # not vacuous
         np.testing.assert_allclose(ad, fd, rtol=1e-4, err_msg=name)
+
+
+def test_analytic_sky_under_a_cloth_square_matches_the_form_factor():
+    """The "fit" occlusion (no maps: the mesh as discs, the ground plane's half): the ground
+    under a flat square sees 1 - F (F the analytic form factor of the square), far away 1; the
+    square's own top 1; a wall receiver above the ground about 1/2."""
+    from test_render_ambient_occlusion import _square_form_factor
+    from test_render_shadows import square
+
+    from diffcloth.shapes import make_plane
+
+    pos, faces = square((0.0, 0.5, 0.0), 0.5, n=16)
+    sky = sky_maps(8, mesh=(pos, faces), planes=make_plane((0, 1, 0), 0.0), analytic=True)
+    assert sky.shadows is None
+    pts = jnp.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [3.0, 1.0, 0.0]])
+    nrm = jnp.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    a = np.asarray(sky_visibility(sky, pts, nrm))
+    np.testing.assert_allclose(a[0], 1.0 - _square_form_factor(0.5, 0.5), atol=0.01)
+    assert a[1] > 0.998 and abs(a[2] - 0.5) < 0.01
+    top = sky_visibility(sky, pos, jnp.broadcast_to(jnp.array([0.0, 1.0, 0.0]), pos.shape))
+    np.testing.assert_allclose(top, 1.0)

@@ -6,22 +6,27 @@
   soft shadows (a blocker search, then 4 x 4 bilinear taps whose radius follows the light's
   softness); the sky maps of ambient occlusion at `shadow_map_size // 2` texels with 3 x 3 taps,
   spheres occluding each sky direction.
-* "fit": what a fit can afford (docs/performance.md, "Shadows and occlusion at fit speed"). The
+* "fit": what a fit can afford (docs/shading.md, "Shadows and occlusion at fit speed"). The
   light's map is sized to the image (the larger camera side, rounded up to 8 texels, at most
   `shadow_map_size`) and looked up with one bilinear tap (a penumbra of about one texel: the
-  sharp shadow of a path tracer's directional light, box-filtered by the pixels); the sky maps
-  have a quarter of that (at least 32 texels: ambient occlusion is low-frequency) and one tap
-  each; spheres occlude the sky analytically (their exact form factor, `sky.sphere_form_factor`)
-  and shadow the light with polynomial arctangents (`_math.fast_atan2`); the cloth's occlusion
-  is evaluated at its vertices and interpolated (a lower resolution that never bleeds across a
-  silhouette: the interpolation stays inside each triangle), and the spheres' and planes' at every
-  4th pixel, upsampled bilinearly (`sky.layer_sky_visibility`).
-  The image stays continuous in every parameter: bilinear taps and antialiased map coverage.
+  sharp shadow of a path tracer's directional light, box-filtered by the pixels), the occluder
+  rasterized into it decimated to triangles about two texels wide (`decimated_grid`), the sphere
+  discs' angles from polynomial arctangents (`_math.fast_atan2`). Ambient occlusion uses no maps
+  at all: closed forms (`render.sky_discs`: the cloth as discs at the vertices of a grid of at
+  most 16 a side, spheres by their exact form factor, planes hiding half the directions), any
+  `ambient_occlusion` > 0 turning it on; on the cloth at its vertices (both sides), interpolated
+  by the rasterizer (a lower resolution that never bleeds across a silhouette), on the ray-cast
+  spheres and planes at every 4th pixel, upsampled bilinearly (`sky.layer_sky_visibility`).
+  The image stays continuous in every parameter.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
 
 #: allowed values of `shadow_quality`
 SHADOW_QUALITIES = ("full", "fit")
@@ -43,6 +48,8 @@ class ShadowSettings:
     fast: bool = False
     sky_per_vertex: bool = False
     sky_layer_stride: int = 1
+    decimate: bool = False
+    sky_analytic: bool = False
 
 
 def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> ShadowSettings:
@@ -65,7 +72,7 @@ def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> Shad
         side = max(16, -(-int(image_size) // 8) * 8)
         size = min(int(shadow_map_size), side)
         sky = max(FIT_SKY_MIN, side // 4)
-        return ShadowSettings(size, 1, sky, 1, True, True, True, FIT_LAYER_STRIDE)
+        return ShadowSettings(size, 1, sky, 1, True, True, True, FIT_LAYER_STRIDE, True, True)
     raise ValueError(f"shadow_quality must be one of {SHADOW_QUALITIES}, got {quality!r}")
 
 
@@ -97,10 +104,12 @@ def frame_maps(
     """
     from diffcloth.render.frame import frame_shadow_maps
     from diffcloth.render.sky import frame_sky_maps
+    from diffcloth.render.sky_discs import DISC_GRID
 
     st = shadow_settings(quality, shadow_map_size, image_size)
+    coarse = decimated_grid if st.decimate else lambda s, _: s
     maps = frame_shadow_maps(
-        surface,
+        coarse(surface, st.map_size),
         lights,
         spheres=spheres,
         occluders=occluders,
@@ -109,7 +118,7 @@ def frame_maps(
         fast=st.fast,
     )
     sky = frame_sky_maps(
-        surface,
+        coarse(surface, 2 * DISC_GRID if st.sky_analytic else st.sky_size),
         ambient_occlusion,
         spheres=spheres,
         occluders=occluders,
@@ -119,5 +128,43 @@ def frame_maps(
         analytic_spheres=st.analytic_spheres,
         per_vertex=st.sky_per_vertex,
         layer_stride=st.sky_layer_stride,
+        analytic=st.sky_analytic,
     )
     return maps, sky
+
+
+class GridMesh(NamedTuple):
+    """A grid surface's occluder mesh: (n, 3) positions, (m, 3) faces, static grid shape."""
+
+    positions: object
+    faces: object
+    grid_shape: tuple
+    flipped: bool
+
+
+def decimated_grid(surface, map_size: int):
+    """The occluder a map of `map_size` texels needs: a tessellated grid surface keeps every s-th
+    vertex row and column (and the last), s the smallest stride that leaves at most
+    map_size / 2 vertices a side (triangles about two texels wide: a finer mesh only adds
+    rasterizer work); other meshes, and grids already that coarse, are returned unchanged.
+    Differentiable (a gather of the positions).
+
+    Shapes: surface positions (vrows * vcols, 3) m -> positions (r * c, 3), faces (m', 3).
+    """
+    from diffcloth.surface.tessellate import grid_faces_np
+
+    shape = getattr(surface, "grid_shape", None)
+    if shape is None:
+        return surface
+    vrows, vcols = int(shape[0]), int(shape[1])
+    limit = max(int(map_size) // 2, 4)
+    stride = max(-(-(max(vrows, vcols) - 1) // (limit - 1)), 1)
+    if stride == 1:
+        return surface
+    rows = np.unique(np.r_[0:vrows:stride, vrows - 1])
+    cols = np.unique(np.r_[0:vcols:stride, vcols - 1])
+    pos = jnp.reshape(surface.positions, (vrows, vcols, 3))[rows][:, cols].reshape(-1, 3)
+    flipped = bool(getattr(surface, "flipped", False))
+    faces = grid_faces_np(len(rows), len(cols))
+    faces = np.ascontiguousarray(faces[:, ::-1] if flipped else faces)
+    return GridMesh(pos, jnp.asarray(faces), (len(rows), len(cols)), flipped)

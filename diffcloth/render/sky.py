@@ -34,6 +34,7 @@ import numpy as np
 from diffcloth._math import fast_acos, fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
 from diffcloth.render.lights import SOFTNESS_RANGE, Lights
 from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility
+from diffcloth.render.sky_discs import disc_occlusion, mesh_discs, plane_openness
 from diffcloth.shapes import Plane, Sphere
 
 #: allowed number of sky directions (0 = off)
@@ -79,6 +80,9 @@ class SkyMaps:
         interpolated by the rasterizer (`pixel_sky_visibility`) instead of at every pixel.
       layer_stride: static; the ray-cast layers (spheres, planes) evaluate A at every
         layer_stride-th pixel and upsample it bilinearly (`layer_sky_visibility`); 1: every pixel.
+      discs: with `analytic`, the occluder mesh as discs (`sky_discs.mesh_discs`), or None.
+      analytic: static; A from closed forms (`render.sky_discs`: mesh discs, sphere form
+        factors, plane halves) instead of the K directions' maps.
     """
 
     shadows: ShadowMaps | None
@@ -88,6 +92,8 @@ class SkyMaps:
     spheres: Sphere | None = None
     per_vertex: bool = dataclasses.field(default=False, metadata={"static": True})
     layer_stride: int = dataclasses.field(default=1, metadata={"static": True})
+    discs: tuple | None = None
+    analytic: bool = dataclasses.field(default=False, metadata={"static": True})
 
 
 def sky_maps(
@@ -102,6 +108,7 @@ def sky_maps(
     analytic_spheres: bool = False,
     per_vertex: bool = False,
     layer_stride: int = 1,
+    analytic: bool = False,
 ) -> SkyMaps | None:
     """Build the sky-visibility data of one frame.
 
@@ -119,6 +126,7 @@ def sky_maps(
         K, and cheaper.
       per_vertex: static; the cloth's occlusion per vertex, interpolated (`SkyMaps.per_vertex`).
       layer_stride: static pixel stride of the spheres' and planes' occlusion (`SkyMaps`).
+      analytic: static; no maps: the closed forms of `render.sky_discs` (k only turns it on).
     Returns:
       SkyMaps or None (k == 0).
     """
@@ -130,6 +138,14 @@ def sky_maps(
     if dtype is None:
         dtype = mesh[0].dtype if mesh is not None else jnp.zeros(()).dtype
     dirs = jnp.asarray(sky_directions(int(k)), dtype)
+    pn = None if planes is None else safe_normalize(planes.batched().normal.astype(dtype))
+    ramp = jnp.asarray(1.0 / k, dtype)
+    if analytic:
+        discs = (
+            None if mesh is None else mesh_discs(mesh[0], jnp.asarray(mesh[1]).astype(jnp.int32))
+        )
+        sph = None if spheres is None else spheres.batched()
+        return SkyMaps(None, dirs, pn, ramp, sph, bool(per_vertex), int(layer_stride), discs, True)
     soft = sky_softness(int(k))
     maps = None
     analytic = spheres.batched() if analytic_spheres and spheres is not None else None
@@ -151,8 +167,6 @@ def sky_maps(
             shadows=(True,) * int(k),
         )
         maps = shadow_maps(sky, mesh=mesh, spheres=spheres, size=int(size), taps=int(taps))
-    pn = None if planes is None else safe_normalize(planes.batched().normal.astype(dtype))
-    ramp = jnp.asarray(1.0 / k, dtype)
     return SkyMaps(maps, dirs, pn, ramp, analytic, bool(per_vertex), int(layer_stride))
 
 
@@ -174,15 +188,22 @@ def sky_visibility(sky: SkyMaps | None, points, normals):
     if sky is None:
         return None
     n = safe_normalize(normals)
-    w = jnp.maximum(jnp.einsum("...c,kc->...k", n, sky.directions), 0.0)  # (..., K)
-    vis = jnp.ones_like(w)
-    if sky.shadows is not None:
-        vis = shadow_visibility(sky.shadows, points, normals)
-    if sky.plane_normal is not None:
-        cos = sky.directions @ sky.plane_normal.T  # (K, npl)
-        pv = jnp.prod(_ramp(cos / sky.ramp + 1.0), axis=-1)  # (K,)
-        vis = vis * jnp.reshape(pv, (1,) * (vis.ndim - 1) + pv.shape)
-    a = safe_div(jnp.sum(w * vis, -1), jnp.sum(w, -1))
+    if sky.analytic:
+        a = jnp.ones(n.shape[:-1], n.dtype)
+        if sky.discs is not None:
+            a = jnp.clip(1.0 - disc_occlusion(points, n, sky.discs), 0.0, 1.0)
+        if sky.plane_normal is not None:
+            a = a * plane_openness(n, sky.plane_normal)
+    else:
+        w = jnp.maximum(jnp.einsum("...c,kc->...k", n, sky.directions), 0.0)  # (..., K)
+        vis = jnp.ones_like(w)
+        if sky.shadows is not None:
+            vis = shadow_visibility(sky.shadows, points, normals)
+        if sky.plane_normal is not None:
+            cos = sky.directions @ sky.plane_normal.T  # (K, npl)
+            pv = jnp.prod(_ramp(cos / sky.ramp + 1.0), axis=-1)  # (K,)
+            vis = vis * jnp.reshape(pv, (1,) * (vis.ndim - 1) + pv.shape)
+        a = safe_div(jnp.sum(w * vis, -1), jnp.sum(w, -1))
     if sky.spheres is not None:
         a = a * jnp.prod(1.0 - sphere_form_factor(points, n, sky.spheres), axis=-1)
     return jnp.clip(a, 0.0, 1.0)
@@ -274,6 +295,7 @@ def frame_sky_maps(
     analytic_spheres: bool = False,
     per_vertex: bool = False,
     layer_stride: int = 1,
+    analytic: bool = False,
 ) -> SkyMaps | None:
     """Sky data of one frame: the cloth `surface` (plus `occluders` triangles (positions (q, 3),
     faces (r, 3))) as the mesh occluder, `spheres` and `planes` analytic; None when k == 0.
@@ -293,4 +315,5 @@ def frame_sky_maps(
         analytic_spheres=analytic_spheres,
         per_vertex=per_vertex,
         layer_stride=layer_stride,
+        analytic=analytic,
     )
