@@ -226,6 +226,8 @@ class _Job:
         s, cons, run, engine = self.s, self.cons, self.run, self.engine
         init, multistart = inits[0], len(inits)
         record = None
+        chained = False  # stages with their own free set or scan: the result's history and
+        # start are the last stage's, so `initial` is reset to the caller's below
         loss_fn, res_fn = None, None
         if self.footage is not None:
             from diffcloth.fit.footage import footage_loss_fn, footage_residual_fn, prepare_targets
@@ -267,6 +269,7 @@ class _Job:
                 stage_args, stage_names, levels, priors = _lm_stages(scene, self.loss, spec)
             sched = make_schedule(spec)
             if any(st.staged for st in sched.stages):
+                chained = True
                 if multistart > 1:
                     raise ValueError("stages with free or scan run one start: set multistart = 1")
                 result = _fit_staged_schedule(res_fn, init, cons, sched, stage_args, stage_names,
@@ -283,7 +286,7 @@ class _Job:
                 result.method = "staged"
         ident = None if self.footage else self._identifiability(scene, targets, result)
         for r in getattr(result, "results", [result]):
-            if multistart <= 1 and (record is not None or engine == "staged"):
+            if multistart <= 1 and (record is not None or engine == "staged" or chained):
                 r.initial = {k: np.asarray(v) for k, v in inits[0].items()}  # before the scan
             r.auto = {**(record or {}), "engine": engine}
             # a float32 fit the caller asked for (x64=False) gets no "use x64" hint
