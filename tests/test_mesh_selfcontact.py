@@ -129,3 +129,30 @@ def test_settings_are_validated():
     cloth, _ = folded_sheet()
     with pytest.raises(ValueError, match="triangle height"):
         sc.make_self_contact(0.08, cloth=cloth)
+
+
+def test_barrier_is_c2_at_the_thickness_and_infinite_at_contact():
+    from diffcloth.physics.mesh import selfcontact_energy as sce
+
+    dhat = 1e-3
+    b = lambda d: sce.barrier(d, dhat)
+    for f, tol in ((b, 1e-18), (jax.grad(b), 1e-15), (jax.grad(jax.grad(b)), 1e-6)):
+        assert abs(float(f(jnp.asarray(dhat * (1 - 1e-7))))) < tol  # -> 0 at d_hat
+        assert float(f(jnp.asarray(dhat * 1.5))) == 0.0
+    assert float(b(jnp.asarray(0.0))) == np.inf
+    assert float(jax.grad(b)(jnp.asarray(1e-4))) < 0  # repulsive
+
+
+def test_step_filter_stops_a_vertex_before_it_crosses_a_triangle():
+    from diffcloth.physics.mesh import selfcontact_energy as sce
+
+    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    x = jnp.asarray(np.vstack([tri, [[0.2, 0.01, 0.2]]]))
+    p = jnp.asarray(np.vstack([np.zeros((3, 3)), [[0.05, -0.03, 0.0]]]))  # through the face
+    pairs = sc.Pairs(idx=jnp.array([[3, 0, 1, 2]], jnp.int32), kind=jnp.array([0], jnp.int32),
+                     valid=jnp.array([True]), overflow=jnp.array(False), count=jnp.array(1))  # fmt: skip
+    a = float(jax.jit(sce.step_bound)(x, p, pairs))
+    assert 0.2 < a < 1.0 / 3.0  # crosses at alpha = 1/3; stops above a tenth of the gap
+    assert float(x[3, 1] + a * p[3, 1]) >= 0.1 * 0.01 - 1e-12
+    slide = jnp.asarray(np.vstack([np.zeros((3, 3)), [[0.04, 0.0, 0.02]]]))  # parallel: full step
+    assert float(jax.jit(sce.step_bound)(x, slide, pairs)) == 1.0

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 
 from diffcloth.physics.mesh import colliders as mc
 from diffcloth.physics.mesh import energy
+from diffcloth.physics.mesh import selfcontact_energy as sce
 from diffcloth.physics.mesh.solve import SolverSettings, _argmin, _Problem, potential
 from diffcloth.physics.state import ClothState
 
@@ -34,11 +35,12 @@ def _project_out(colliders, x, v):
 
 
 def implicit_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None, colliders=None,
-                  settings: SolverSettings = _STEP) -> ClothState:  # fmt: skip
+                  settings: SolverSettings = _STEP, self_contact=None) -> ClothState:  # fmt: skip
     """One implicit (backward) Euler step of length h (s): minimises the incremental potential
     (`solve`'s module docstring) by Newton; differentiable by the implicit function theorem. Pinned
     vertices keep their state. Non-convergence shows as non-finite positions (NaN), which the
-    rollout's checks report.
+    rollout's checks report. self_contact: `selfcontact.SelfContact` or None (off); on, the
+    solve starts from x_n (intersection-free) instead of the inertial prediction.
     Shapes: state leaves (n, 3) m and m/s -> ClothState with (n, 3) leaves; h () s.
     """
     x_n, v_n = state.x, state.v
@@ -56,9 +58,15 @@ def implicit_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None, co
         "wind": jnp.zeros(3, dtype) if wind is None else jnp.asarray(wind, dtype),
         "el_prev": energy.elastic_energy(cloth, fabric, x_n),
         "g_prev": jax.grad(lambda y: energy.elastic_energy(cloth, fabric, y))(x_n),
+        "self_contact": self_contact,
     }
-    problem = _Problem("implicit", settings, 0.0, mc.has_colliders(colliders))
-    res = _argmin(problem, theta, jax.lax.stop_gradient(x_n + h * v_n))
+    start = x_n + h * v_n
+    if self_contact is not None:
+        theta["sc_frame"] = sce.friction_frame(cloth, self_contact, x_n)
+        start = x_n
+    problem = _Problem("implicit", settings, 0.0, mc.has_colliders(colliders),
+                       self_contact is not None)  # fmt: skip
+    res = _argmin(problem, theta, jax.lax.stop_gradient(start))
     free = ~cloth.pinned
     x = jnp.where(res.converged, res.x, jnp.nan)
     v = jnp.where(free[:, None], (x - x_n) / h, v_n)
@@ -95,13 +103,18 @@ def symplectic_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None,
 
 def mesh_rollout(cloth, fabric, state: ClothState, *, dt, num_frames: int, num_substeps: int = 1,
                  integrator: str = "implicit", gravity, wind=None, colliders=None,
-                 settings: SolverSettings = _ROLLOUT) -> ClothState:  # fmt: skip
+                 settings: SolverSettings = _ROLLOUT, self_contact=None) -> ClothState:  # fmt: skip
     """The trajectory: ClothState with leaves (num_frames, n, 3), frame k being the state after
-    k + 1 frames of dt seconds (num_substeps steps each). lax.scan with a checkpointed body."""
+    k + 1 frames of dt seconds (num_substeps steps each). lax.scan with a checkpointed body.
+    self_contact (implicit integrator only): `selfcontact.SelfContact` or None."""
     h = dt / num_substeps
     if integrator == "implicit":
         step = lambda s: implicit_step(cloth, fabric, s, h, gravity=gravity, wind=wind,
-                                       colliders=colliders, settings=settings)  # fmt: skip
+                                       colliders=colliders, settings=settings,
+                                       self_contact=self_contact)  # fmt: skip
+    elif self_contact is not None:
+        raise ValueError("self_contact: needs integrator = 'implicit' (the barrier lives in the "
+                         f"implicit step's minimisation), got {integrator!r}")  # fmt: skip
     elif integrator == "symplectic":
         step = lambda s: symplectic_step(cloth, fabric, s, h, gravity=gravity, wind=wind,
                                          colliders=colliders)  # fmt: skip

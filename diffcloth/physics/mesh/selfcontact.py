@@ -55,15 +55,14 @@ class SelfContact:
       capacity: static, pairs per vertex kept after the distance filter (vertex-triangle, and as
         many edge-edge pairs per edge); the raw candidates get 16 times as many slots.
       step_fraction: static, a Newton step moves no vertex further than this times the mean rest
-        edge length (the broad phase's margin: pairs outside the search radius cannot come
-        within d_hat during the step).
+        edge length (it bounds the broad phase's cells, and so its candidate count).
     """
 
     thickness: jax.Array
     stiffness: jax.Array
     friction: jax.Array
     capacity: int = dataclasses.field(default=8, metadata={"static": True})
-    step_fraction: float = dataclasses.field(default=0.2, metadata={"static": True})
+    step_fraction: float = dataclasses.field(default=0.5, metadata={"static": True})
 
 
 def make_self_contact(
@@ -72,7 +71,7 @@ def make_self_contact(
     stiffness: float = 1e5,
     friction: float = 1.0,
     capacity: int = 8,
-    step_fraction: float = 0.2,
+    step_fraction: float = 0.5,
     cloth=None,
     dtype=None,
 ) -> SelfContact:
@@ -227,23 +226,27 @@ def _candidates(query, target, cell, slots):
 
 def step_radius(cloth, sc: SelfContact):
     """() m, the most a vertex moves in one Newton step with self-contact on
-    (`SelfContact.step_fraction` times the mean rest edge length).
+    (`SelfContact.step_fraction` times the mean rest edge length: it bounds the broad phase's
+    cells).
     Shapes: cloth -> ()."""
     e = cloth.edges
     length = safe_norm(cloth.rest[e[:, 1]] - cloth.rest[e[:, 0]])
     return sc.step_fraction * jnp.mean(length)
 
 
-def find_pairs(cloth, sc: SelfContact, x, radius) -> Pairs:
+def find_pairs(cloth, sc: SelfContact, x, radius, motion=None) -> Pairs:
     """Every vertex-triangle and edge-edge pair closer than radius (m) at x (n, 3), excluding
-    pairs that share a vertex (module docstring). Not differentiated (stop_gradient).
-    Shapes: x (n, 3), radius () -> Pairs with P = capacity x (n + num edges)."""
+    pairs that share a vertex (module docstring); with motion (n,) m, the bound on each vertex's
+    displacement in a step, closer than radius + the largest motion of each side's vertices (the
+    pairs the step can bring within radius). Not differentiated (stop_gradient).
+    Shapes: x (n, 3), radius (), motion (n,) -> Pairs with P = capacity x (n + num edges)."""
     x = jax.lax.stop_gradient(x)
     radius = jax.lax.stop_gradient(radius)
     f, e = cloth.faces, cloth.edges
     n, ne = x.shape[0], e.shape[0]
+    motion = jnp.zeros(n, x.dtype) if motion is None else jax.lax.stop_gradient(motion)
     elen = safe_norm(x[e[:, 1]] - x[e[:, 0]])
-    cell = jnp.max(elen) * 1.01 + radius
+    cell = jnp.max(elen) * 1.01 + radius + 2.0 * jnp.max(motion)
     cell = jnp.where(jnp.isfinite(cell) & (cell > 0), cell, 1.0)
     cap = sc.capacity
     # vertex-triangle
@@ -260,7 +263,10 @@ def find_pairs(cloth, sc: SelfContact, x, radius) -> Pairs:
     for idx, good, k, size in ((idx_vt, ok, 0, cap * n), (idx_ee, oke, 1, cap * ne)):
         kind = jnp.full(idx.shape[:1], k, jnp.int32)
         d = safe_norm(gap(x, idx, kind))
-        good = good & (d < radius)
+        m4 = motion[idx]
+        reach = (m4[:, 0] + jnp.max(m4[:, 1:], axis=1) if k == 0
+                 else jnp.max(m4[:, :2], axis=1) + jnp.max(m4[:, 2:], axis=1))  # fmt: skip
+        good = good & (d < radius + reach)
         (sel,) = jnp.nonzero(good, size=size, fill_value=0)
         out.append((idx[sel], kind[:size], jnp.arange(size) < jnp.sum(good), jnp.sum(good), size))
     overflow = (tot_vt > 16 * cap * n) | (tot_ee > 16 * cap * ne)

@@ -230,11 +230,10 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     def body(c):
         x, e, g, mu, nu, eta, k, res, token, fresh = c
         total, grad_fn, pairs = total_0, grad_0, None
-        if problem.self_contact:  # the pairs this step can reach (it moves no vertex > margin)
-            margin = sce.step_radius(cloth, theta["self_contact"])
-            pairs = sce.solve_pairs(cloth, theta["self_contact"], x, margin)
-            total = lambda y: _energy(problem, y, theta, pairs)
-            grad_fn = jax.grad(total)
+        if problem.self_contact:  # the pairs in contact at x
+            sc = theta["self_contact"]
+            pairs = sce.find_pairs(cloth, sc, x, sc.thickness)
+            grad_fn = jax.grad(lambda y: _energy(problem, y, theta, pairs))
         if st.linear_solver == "direct":
             # Newton-Krylov: CG on the exact Hessian (+ mu M), preconditioned by the LU of the
             # PSD approximation (refactored as `refactor_every` says); at negative curvature,
@@ -257,11 +256,15 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
             pre = _block_jacobi(hessian.block_diagonal(hmat), free)
             p, ok, kry = _cg(apply_a, -g, pre, st.cg_iters, st.cg_tol)
         p, shrink = p * fmask, 1.0
-        if problem.self_contact:  # step filter: within the margin, and no pair crosses (CCD)
+        if problem.self_contact:  # step filter: the cap on a vertex's move, then CCD on the
+            # pairs the step can reach (their energy is then exact along it)
             step = jnp.max(jnp.sqrt(jnp.sum(p * p, axis=-1)))
-            shrink = jnp.minimum(1.0, margin / jnp.maximum(step, 1e-30))
+            shrink = jnp.minimum(1.0, sce.step_radius(cloth, sc) / jnp.maximum(step, 1e-30))
+            pairs = sce.step_pairs(cloth, sc, x, p * shrink)
             shrink = shrink * sce.step_bound(x, p * shrink, pairs)
             p = p * shrink
+            total = lambda y: _energy(problem, y, theta, pairs)
+            grad_fn = jax.grad(total)
         gp = jnp.minimum(jnp.vdot(g, p), 0.0)  # the model's slope along p
         e_all = jax.vmap(lambda a: total(x + a * p))(alphas)
         # a decrease, up to the energy's rounding error (float32 cannot resolve the last steps
