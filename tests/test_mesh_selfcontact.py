@@ -156,3 +156,28 @@ def test_step_filter_stops_a_vertex_before_it_crosses_a_triangle():
     assert float(x[3, 1] + a * p[3, 1]) >= 0.1 * 0.01 - 1e-12
     slide = jnp.asarray(np.vstack([np.zeros((3, 3)), [[0.04, 0.0, 0.02]]]))  # parallel: full step
     assert float(jax.jit(sce.step_bound)(x, slide, pairs)) == 1.0
+
+
+def test_config_switch_is_off_by_default_and_validated():
+    import tomllib
+
+    from diffcloth.config import ConfigError, parse_config
+    from diffcloth.config.cloth import build_mesh_physics
+
+    with open("configs/tablecloth.toml", "rb") as fh:
+        data = tomllib.load(fh)
+    assert build_mesh_physics(parse_config(data)).sim.self_contact is None
+    data.setdefault("sim", {}).update(self_contact=True, self_contact_thickness=1e-3)
+    on = build_mesh_physics(parse_config(data)).sim.self_contact
+    assert float(on.thickness) == pytest.approx(1e-3) and on.capacity == 8
+    data["sim"]["self_contact_thickness"] = 1.0
+    with pytest.raises(ConfigError, match="self_contact_thickness"):
+        build_mesh_physics(parse_config(data))
+    data["sim"]["self_contact"] = "yes"
+    with pytest.raises(ConfigError, match="self_contact"):
+        parse_config(data)
+    with open("configs/hang.toml", "rb") as fh:
+        grid = tomllib.load(fh)
+    grid.setdefault("sim", {})["self_contact"] = True
+    with pytest.raises(ConfigError, match="mesh cloth only"):
+        parse_config(grid)

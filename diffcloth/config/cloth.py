@@ -446,6 +446,15 @@ def build_mesh_physics(config, dtype=None):
                             solver_tol=tol, dtype=dtype)  # fmt: skip
     except ValueError as err:
         raise ConfigError(f"{where}[sim] {err}") from None
+    if s.self_contact:
+        from diffcloth.physics.mesh.selfcontact import make_self_contact
+
+        try:
+            contact = make_self_contact(s.self_contact_thickness, capacity=s.self_contact_capacity,
+                                        cloth=cloth, dtype=cloth.rest.dtype)  # fmt: skip
+        except ValueError as err:
+            raise ConfigError(f"{where}[sim] {err} (self_contact_thickness)") from None
+        sim = dataclasses.replace(sim, self_contact=contact)
     x = cloth.rest
     if s.perturb is not None:
         p = s.perturb

@@ -104,6 +104,9 @@ class SimConfig:
     perturb: Mapping[str, Any] | None = None
     solver_iters: int | None = None
     solver_tol: float | None = None
+    self_contact: bool = False
+    self_contact_thickness: float = 2e-3
+    self_contact_capacity: int = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -234,7 +237,21 @@ def parse_sim(t: Mapping[str, Any]) -> SimConfig:
         solver_tol=get_number(
             t, "solver_tol", None, where=w, lo=0, hi=1, lo_inclusive=False, hi_inclusive=False
         ),
+        self_contact=_get_bool(t, "self_contact", d.self_contact, w),
+        self_contact_thickness=get_number(
+            t, "self_contact_thickness", d.self_contact_thickness, where=w, lo=0, lo_inclusive=False
+        ),  # fmt: skip
+        self_contact_capacity=get_number(
+            t, "self_contact_capacity", d.self_contact_capacity, where=w, lo=1, integer=True
+        ),  # fmt: skip
     )
+
+
+def _get_bool(t, key, default, where):
+    value = t.get(key, default)
+    if not isinstance(value, bool):
+        raise ConfigError(f"{where}.{key}: must be true or false, got {value!r}")
+    return value
 
 
 def _parse_perturb(p) -> Mapping[str, Any] | None:

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffcloth.physics.mesh.dynamics import mesh_rollout
+from diffcloth.physics.mesh.selfcontact import SelfContact
 from diffcloth.physics.mesh.solve import SolverSettings, equilibrium
 from diffcloth.physics.mesh.topology import ClothMesh
 from diffcloth.physics.state import ClothState
@@ -54,6 +55,7 @@ class MeshSim:
       solver: static `SolverSettings` of the Newton solves.
       gradient: static, always "reverse" (the equilibrium's gradient is the implicit function
         theorem's; forward sensitivities do not apply); kept for the pipeline's interface.
+      self_contact: `selfcontact.SelfContact` or None (off; [sim] self_contact).
     """
 
     dt: jax.Array
@@ -64,6 +66,7 @@ class MeshSim:
     mode: str = dataclasses.field(default="dynamic", metadata={"static": True})
     solver: SolverSettings = SolverSettings()
     gradient: str = dataclasses.field(default="reverse", metadata={"static": True})
+    self_contact: SelfContact | None = None
 
 
 def make_mesh_sim(
@@ -154,7 +157,7 @@ def mesh_trajectory(
     """
     if sim.mode == "equilibrium":
         res = equilibrium(cloth, fabric, state.x, gravity=sim.gravity, colliders=colliders,
-                          settings=sim.solver)  # fmt: skip
+                          settings=sim.solver, self_contact=sim.self_contact)  # fmt: skip
         x = jnp.where(res.converged, res.x, jnp.nan)
         traj = ClothState(x=x[None], v=jnp.zeros_like(x)[None])
         status = MeshStatus(res.converged[None], jnp.asarray(res.iterations)[None],
@@ -163,7 +166,7 @@ def mesh_trajectory(
     traj = mesh_rollout(
         cloth, fabric, state, dt=sim.dt, num_frames=num_frames, num_substeps=sim.num_substeps,
         integrator=sim.integrator, gravity=sim.gravity, wind=sim.wind, colliders=colliders,
-        settings=sim.solver,
+        settings=sim.solver, self_contact=sim.self_contact,
     )  # fmt: skip
     finite = jnp.all(jnp.isfinite(traj.x), axis=(1, 2)) & jnp.all(jnp.isfinite(traj.v), axis=(1, 2))
     status = MeshStatus(finite, jnp.full((num_frames,), -1), jnp.full((num_frames,), jnp.nan))
@@ -188,4 +191,6 @@ def status_message(sim: MeshSim, status: MeshStatus) -> str | None:
     return (
         f"the {sim.integrator} step of frame {k} did not converge or became non-finite; lower "
         "[sim] dt, raise num_substeps or solver_iters"
-    )
+        + (" (with [sim] self_contact: raise solver_iters to 200, or self_contact_capacity if "
+           "the broad phase overflowed)" if sim.self_contact is not None else "")
+    )  # fmt: skip

@@ -94,7 +94,7 @@ def make_self_contact(
         if not float(thickness) < 0.5 * h:
             raise ValueError(
                 f"self_contact.thickness = {thickness!r} m must be below half the shortest rest "
-                f"triangle height ({0.5 * h:.3g} m): refine less or lower the thickness"
+                f"triangle height ({0.5 * h:.3g} m): lower it or use a coarser mesh"
             )
     dtype = dtype or jnp.zeros(()).dtype
     return SelfContact(
