@@ -42,6 +42,7 @@ __all__ = [
     "barrier_blocks",
     "barrier_energy",
     "friction_energy",
+    "friction_blocks",
     "friction_frame",
     "mollifier",
     "find_pairs",
@@ -185,6 +186,24 @@ def friction_energy(frame: FrictionFrame, x, x_prev, mu, eps):
     slide = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps) - eps
     e = mu * jnp.sum(frame.lam * slide)
     return jnp.where(frame.overflow, jnp.nan, e)
+
+
+def friction_blocks(frame: FrictionFrame, x, x_prev, mu, eps):
+    """(n, 3, 3) PSD diagonal blocks of the lagged friction's Hessian: mu lambda w_k^2 times the
+    Hessian of sqrt(|u_T|^2 + eps^2) (the tangential projector over its value, less the slip
+    direction's part), for the preconditioner (the friction is stiff where a layer sticks: mu
+    lambda / eps).
+    Shapes: x, x_prev (n, 3) -> (n, 3, 3)."""
+    u = jnp.einsum("pk,pki->pi", frame.w, jax.lax.stop_gradient(x - x_prev)[frame.idx])
+    nrm = frame.normal
+    ut = u - jnp.sum(u * nrm, axis=-1, keepdims=True) * nrm
+    s = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps)
+    proj = jnp.eye(3, dtype=x.dtype)[None] - nrm[:, :, None] * nrm[:, None, :]
+    hess = proj / s[:, None, None] - ut[:, :, None] * ut[:, None, :] / (s**3)[:, None, None]
+    blk = (mu * frame.lam[:, None] * frame.w**2)[:, :, None, None] * hess[:, None]
+    out = jax.ops.segment_sum(blk.reshape(-1, 3, 3), frame.idx.reshape(-1),
+                              num_segments=x.shape[0])  # fmt: skip
+    return jnp.where(frame.overflow, 0.0, out)
 
 
 def step_pairs(cloth, sc: SelfContact, x, p):

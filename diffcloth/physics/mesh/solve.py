@@ -176,6 +176,9 @@ def _hessian(problem: _Problem, x, theta, pairs=None):
         sc = theta["self_contact"]
         pairs = sce.find_pairs(cloth, sc, x, sc.thickness) if pairs is None else pairs
         diag = diag + sce.barrier_blocks(cloth, sc, x, pairs)
+        if problem.kind == "implicit":
+            diag = diag + sce.friction_blocks(theta["sc_frame"], x, theta["x_n"],
+                                              fabric.friction * sc.friction, _FRICTION_EPS)  # fmt: skip
     scale = 1.0
     if problem.colliders:
         cols = theta["colliders"]
