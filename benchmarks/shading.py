@@ -20,7 +20,8 @@ directional light, two spheres, the ground plane, phong; forward and value-and-g
 the control net (geometry: rasterizer and shadow-map gradients), the lights and the appearance.
 Per size: "shadows": false, then shadows on the light with --ratio-ao sky directions (default 8)
 at shadow_quality "fit" ("shadow_ratio" lines: fwd_ratio and grad_ratio = shadowed / unshadowed,
-same process), and with --ratio-full also at "full" (256^2 maps, 32 directions: slow).
+same process; *_min_ratio: of the minimum times), and with --ratio-full also at "full" (256^2
+maps, 32 directions: slow).
 
 Lines are appended to --out (default benchmarks/results/shading.jsonl; "-": stdout only), after
 a "meta" line.
@@ -256,16 +257,18 @@ def ratio_cases(args, spheres, device):
                 "shadow_quality": quality,
                 "ambient_occlusion": ao,
             }
-            row["render_fwd_ms"] = _timed_ms(
-                jax.jit(render_fn), net, lights, app, repeats=args.repeats
-            )
+            # median and minimum: on the shared machine the minimum is the steadier figure
+            t = timed(jax.jit(render_fn), net, lights, app, repeats=args.repeats)
+            row["render_fwd_ms"], row["render_fwd_min_ms"] = t.median_ms, t.min_ms
             g = jax.jit(jax.value_and_grad(render_loss))
-            row["render_grad_ms"] = _timed_ms(g, (net, lights, app), repeats=args.repeats)
+            t = timed(g, (net, lights, app), repeats=args.repeats)
+            row["render_grad_ms"], row["render_grad_min_ms"] = t.median_ms, t.min_ms
             if base is None:
                 base = row
             else:
-                row["fwd_ratio"] = round(row["render_fwd_ms"] / base["render_fwd_ms"], 2)
-                row["grad_ratio"] = round(row["render_grad_ms"] / base["render_grad_ms"], 2)
+                for k in ("fwd", "grad", "fwd_min", "grad_min"):
+                    key = f"render_{k}_ms"
+                    row[f"{k}_ratio"] = round(row[key] / base[key], 2)
             row["device"] = device
             _print(row)
 

@@ -247,7 +247,8 @@ def surface_gbuffer(
         "bitangent": surface.bitangents,
         "uv": surface.uv,
     }
-    if (vsky := skylib.vertex_sky_attribute(sky, pos, nrm)) is not None:
+    grid = getattr(surface, "grid_shape", None)
+    if (vsky := skylib.vertex_sky_attribute(sky, pos, nrm, grid)) is not None:
         attrs["sky"] = vsky  # ambient occlusion per vertex, both sides, interpolated
     if shading == "gouraud":
         # per-vertex lighting, for both sides: from the eye point (perspective) or the common

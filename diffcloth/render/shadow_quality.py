@@ -15,8 +15,9 @@
   at all: closed forms (`render.sky_discs`: the cloth as discs at the vertices of a grid of at
   most 16 a side, spheres by their exact form factor, planes hiding half the directions), any
   `ambient_occlusion` > 0 turning it on; on the cloth at its vertices (both sides), interpolated
-  by the rasterizer (a lower resolution that never bleeds across a silhouette), on the ray-cast
-  spheres and planes at every 4th pixel, upsampled bilinearly (`sky.layer_sky_visibility`).
+  by the rasterizer (a lower resolution that never bleeds across a silhouette; on a grid surface
+  at 16 x 16 of its vertices, interpolated along the grid), on the ray-cast spheres and planes
+  on 16 x 16 pixels (every 4th at least), upsampled bilinearly (`sky.layer_sky_visibility`).
   The image stays continuous in every parameter.
 """
 
@@ -32,8 +33,10 @@ import numpy as np
 SHADOW_QUALITIES = ("full", "fit")
 #: smallest sky-map size of the "fit" preset, texels
 FIT_SKY_MIN = 32
-#: pixel stride of the "fit" preset's occlusion on the ray-cast spheres and planes
+#: pixel stride of the "fit" preset's occlusion on the ray-cast spheres and planes: at least
+#: FIT_LAYER_STRIDE, and at most FIT_LAYER_GRID evaluations a side
 FIT_LAYER_STRIDE = 4
+FIT_LAYER_GRID = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +75,8 @@ def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> Shad
         side = max(16, -(-int(image_size) // 8) * 8)
         size = min(int(shadow_map_size), side)
         sky = max(FIT_SKY_MIN, side // 4)
-        return ShadowSettings(size, 1, sky, 1, True, True, True, FIT_LAYER_STRIDE, True, True)
+        stride = max(FIT_LAYER_STRIDE, side // FIT_LAYER_GRID)
+        return ShadowSettings(size, 1, sky, 1, True, True, True, stride, True, True)
     raise ValueError(f"shadow_quality must be one of {SHADOW_QUALITIES}, got {quality!r}")
 
 
