@@ -7,9 +7,10 @@
   softness); the sky maps of ambient occlusion at `shadow_map_size // 2` texels with 3 x 3 taps,
   spheres occluding each sky direction.
 * "fit": what a fit can afford (docs/shading.md, "Shadows and occlusion at fit speed"). The
-  light's map is sized to the image (the larger camera side, rounded up to 8 texels, at most
-  `shadow_map_size`) and looked up with one bilinear tap (a penumbra of about one texel: the
-  sharp shadow of a path tracer's directional light, box-filtered by the pixels), the occluder
+  light's map is sized to half the image (the larger camera side rounded up to 8, halved, at
+  least 32 and at most `shadow_map_size` texels) and looked up with one bilinear tap (a penumbra
+  of about two pixels: near the sharp shadow of a path tracer's directional light, box-filtered
+  by the pixels), the occluder
   rasterized into it decimated to triangles about two texels wide (`decimated_grid`), the sphere
   discs' angles from polynomial arctangents (`_math.fast_atan2`). Ambient occlusion uses no maps
   at all: closed forms (`render.sky_discs`: the cloth as discs at the vertices of a grid of at
@@ -73,7 +74,7 @@ def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> Shad
         )
     if quality == "fit":
         side = max(16, -(-int(image_size) // 8) * 8)
-        size = min(int(shadow_map_size), side)
+        size = min(int(shadow_map_size), max(32, side // 2))
         sky = max(FIT_SKY_MIN, side // 4)
         stride = max(FIT_LAYER_STRIDE, side // FIT_LAYER_GRID)
         return ShadowSettings(size, 1, sky, 1, True, True, True, stride, True, True)
