@@ -105,8 +105,8 @@ def table(rows: list[dict]) -> str:
     """Markdown: one row per run (the last record of each), shadows next to its plain run."""
     last = {r["run"]: r for r in rows}
     lines = [
-        "| run | start k_struct / air | k_struct err | air damping err | status | total s "
-        "(with compilation) | load | commit |",
+        "| run | start k_struct / air | k_struct err | air damping err | status | s (with "
+        "compilation) | load at start | commit |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for name in RUNS:
@@ -116,7 +116,7 @@ def table(rows: list[dict]) -> str:
         e, i = r["err_pct"], r["initial"]
         lines.append(
             f"| {name} | {i['k_struct']:g} / {i['air_damping']:g} | {e['k_struct']:+.2f} % | "
-            f"{e['air_damping']:+.2f} % | {r['status']} | {r['wall_s']:.0f} | "
+            f"{e['air_damping']:+.2f} % | {r['status']} | {r['total_s']:.0f} | "
             f"{r['load_start']} | {r['commit']} |"
         )
     return "\n".join(lines)
