@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from diffcloth.physics.mesh import (
+    MeshData,
     NotConvergedError,
     SolverSettings,
     check_equilibrium,
@@ -664,3 +665,30 @@ def test_cantilever_rigidity_inverts_the_bending_length():
 
     c = float(bending_length(3e-5, 0.2))
     np.testing.assert_allclose(measure.cantilever_rigidity(2 * c, 0.2), 3e-5, rtol=1e-12)
+
+
+@pytest.mark.parametrize("curved", [False, True])
+def test_hinge_angles_gathered_per_face_equal_the_face_stencil_form(curved):
+    """The bending energy's per-face angles (each hinge's angle computed once, gathered by its
+    two faces) and the Hessian's angle Jacobian (one gradient per hinge, placed by a slot table)
+    equal the face-stencil form that computes every interior angle from each face, on a flat and
+    a curved rest mesh (float64)."""
+    from diffcloth.physics.mesh import energy as en
+    from diffcloth.physics.mesh import hessian as hs
+
+    with jax.enable_x64(True):
+        mesh = rectangle(0.3, 0.2, 0.03)
+        if curved:
+            v = mesh.vertices.copy()
+            v[:, 1] += 0.3 * v[:, 0] ** 2 + 0.1 * np.sin(5 * v[:, 2])
+            mesh = MeshData(v, mesh.faces, mesh.uv, mesh.source)
+        cloth = make_cloth(mesh, dtype=jnp.float64)
+        x = cloth.rest + 0.003 * np.random.default_rng(0).standard_normal(cloth.rest.shape)
+        interior = cloth.face_hinge >= 0
+        stencil = x[cloth.stencil]
+        ref = en._stencil_theta(stencil, interior, cloth.face_rest_angle)
+        np.testing.assert_allclose(en.face_dihedrals(cloth, x), ref, rtol=0, atol=1e-13)
+        ref_jac = jax.vmap(jax.jacfwd(en._stencil_theta))(stencil, interior, cloth.face_rest_angle)
+        jac = hs._stencil_angle_jacobian(cloth, x)
+        scale = float(jnp.max(jnp.abs(ref_jac)))
+        np.testing.assert_allclose(jac, ref_jac, rtol=0, atol=1e-13 * scale)

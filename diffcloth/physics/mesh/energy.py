@@ -84,7 +84,9 @@ def face_dihedrals(cloth: ClothMesh, x):
 
 
 def _stencil_theta(p, interior, rest):
-    """p: (..., 6, 3) stencil positions -> (..., 3) hinge angles minus rest (0 on boundary)."""
+    """p: (..., 6, 3) stencil positions -> (..., 3) hinge angles minus rest (0 on boundary): the
+    face-stencil form, kept as the reference `face_dihedrals` and the Hessian's angle Jacobian
+    are tested against (tests/test_physics_mesh.py)."""
     out = []
     for k in range(3):
         a, b, c, d = p[..., (k + 1) % 3, :], p[..., (k + 2) % 3, :], p[..., k, :], p[..., 3 + k, :]
