@@ -22,7 +22,7 @@ from diffcloth.render.fringe import fringe_depth, layer_in_front
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
-from diffcloth.render.shadows import ShadowMaps, shadow_visibility
+from diffcloth.render.shadows import ShadowMaps, layer_shadow_visibility, shadow_visibility
 from diffcloth.render.shadows import shadow_maps as build_shadow_maps
 from diffcloth.render.sky import SkyMaps, sky_visibility
 from diffcloth.render.sphere_layer import _sphere_layer
@@ -139,7 +139,7 @@ def _plane_layer(
     normal = pl.normal[nearest]
     hit = depth < big
     point = jnp.where(hit[..., None], point, 0.0)
-    vis = shadow_visibility(shadows, point, normal)
+    vis = layer_shadow_visibility(shadows, point, normal)
     diffuse, _ = blinn_phong(normal, -dirs, point, lights, appearance, vis)
     amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
     if sky is not None:

@@ -10,7 +10,8 @@
   light's map is sized to half the image (the larger camera side rounded up to 8, halved, at
   least 32 and at most `shadow_map_size` texels) and looked up with one bilinear tap (a penumbra
   of about two pixels: near the sharp shadow of a path tracer's directional light, box-filtered
-  by the pixels), the occluder
+  by the pixels; on the ray-cast spheres and planes once per 2 x 2 pixels, upsampled
+  bilinearly: `shadows.layer_shadow_visibility`), the occluder
   rasterized into it decimated to triangles about two texels wide (`decimated_grid`), the sphere
   discs' angles from polynomial arctangents (`_math.fast_atan2`). Ambient occlusion uses no maps
   at all: closed forms (`render.sky_discs`: the cloth as discs at the vertices of a grid of at
@@ -38,6 +39,8 @@ FIT_SKY_MIN = 32
 #: FIT_LAYER_STRIDE, and at most FIT_LAYER_GRID evaluations a side
 FIT_LAYER_STRIDE = 4
 FIT_LAYER_GRID = 16
+#: the "fit" preset's light-map lookups on the ray-cast spheres and planes: once per 2 x 2 pixels
+FIT_SHADOW_STRIDE = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +57,7 @@ class ShadowSettings:
     sky_layer_stride: int = 1
     decimate: bool = False
     sky_analytic: bool = False
+    layer_stride: int = 1
 
 
 def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> ShadowSettings:
@@ -77,7 +81,9 @@ def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> Shad
         size = min(int(shadow_map_size), max(32, side // 2))
         sky = max(FIT_SKY_MIN, side // 4)
         stride = max(FIT_LAYER_STRIDE, side // FIT_LAYER_GRID)
-        return ShadowSettings(size, 1, sky, 1, True, True, True, stride, True, True)
+        return ShadowSettings(
+            size, 1, sky, 1, True, True, True, stride, True, True, FIT_SHADOW_STRIDE
+        )
     raise ValueError(f"shadow_quality must be one of {SHADOW_QUALITIES}, got {quality!r}")
 
 
@@ -121,6 +127,7 @@ def frame_maps(
         size=st.map_size,
         taps=st.taps,
         fast=st.fast,
+        layer_stride=st.layer_stride,
     )
     sky = frame_sky_maps(
         coarse(surface, 2 * DISC_GRID if st.sky_analytic else st.sky_size),

@@ -35,8 +35,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcloth._math import fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
-from diffcloth.render.camera import Camera, look_at, orthographic, perspective, project
+from diffcloth._math import (
+    fast_atan2,
+    materialize,
+    materialize_grad,
+    safe_div,
+    safe_norm,
+    safe_normalize,
+    safe_sqrt,
+)
+from diffcloth.render.camera import Camera, look_at, orthographic, perspective
 from diffcloth.render.lights import Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize
 from diffcloth.shapes import Sphere
@@ -73,6 +81,8 @@ class ShadowMaps:
         tap (no blocker search, penumbra about a texel wide), the fast setting.
       fast: static; the sphere discs' angles from `_math.fast_atan2` (a polynomial) instead of
         XLA's atan2 (a scalar library call: most of the lookup's cost on the CPU).
+      layer_stride: static; f > 1: the ray-cast layers (spheres, planes) look up their
+        visibility once per f x f pixel block, upsampled bilinearly (`layer_shadow_visibility`).
     """
 
     lights: Lights
@@ -87,6 +97,7 @@ class ShadowMaps:
     size: int = dataclasses.field(metadata={"static": True})
     taps: int = dataclasses.field(default=4, metadata={"static": True})
     fast: bool = dataclasses.field(default=False, metadata={"static": True})
+    layer_stride: int = dataclasses.field(default=1, metadata={"static": True})
 
 
 def _smoothstep(x):
@@ -151,6 +162,7 @@ def shadow_maps(
     size: int = 256,
     taps: int = 4,
     fast: bool = False,
+    layer_stride: int = 1,
 ) -> ShadowMaps | None:
     """Build the per-frame shadow data of every shadow-casting light.
 
@@ -163,6 +175,7 @@ def shadow_maps(
       size: static shadow-map size in texels (maps cover the mesh's bounding sphere).
       taps: static filter taps per axis of every lookup of these maps (see `shadow_visibility`).
       fast: static; polynomial arctangents in the sphere occlusion (`ShadowMaps.fast`).
+      layer_stride: static; `ShadowMaps.layer_stride`.
     Returns:
       ShadowMaps, or None when no light casts shadows.
     """
@@ -183,7 +196,19 @@ def shadow_maps(
     sph = spheres.batched() if spheres is not None else None
     if mesh is None or mesh[1].shape[0] == 0:
         return ShadowMaps(
-            lights, sph, None, None, None, None, None, casting, n_dir, int(size), int(taps), fast
+            lights,
+            sph,
+            None,
+            None,
+            None,
+            None,
+            None,
+            casting,
+            n_dir,
+            int(size),
+            int(taps),
+            fast,
+            int(layer_stride),
         )
     positions, faces = mesh[0], jnp.asarray(mesh[1]).astype(jnp.int32)
     neighbors = mesh[2] if len(mesh) > 2 and mesh[2] is not None else edge_neighbors(faces)
@@ -219,25 +244,41 @@ def shadow_maps(
 
     maps, zmin = jax.lax.map(one, (view, proj, near, far))
     return ShadowMaps(
-        lights, sph, maps, view, proj, texel, zmin, casting, n_dir, int(size), int(taps), fast
+        lights,
+        sph,
+        maps,
+        view,
+        proj,
+        texel,
+        zmin,
+        casting,
+        n_dir,
+        int(size),
+        int(taps),
+        fast,
+        int(layer_stride),
     )
 
 
 def _bilinear(tex, u, v):
     """Sample a (S, S, C) map at continuous texel coordinates (texel (j, i) centre at (j, i));
-    zero outside the map. u, v: (...). Returns (..., C)."""
-    S = tex.shape[0]
+    zero outside the map. u, v: (...). Returns (..., C).
+
+    One gather per lookup: the map, zero-padded, as a table of each texel's 2 x 2 footprint
+    (4 C values a row; XLA's CPU gathers cost about 25 ns a row whatever their width, and the
+    backward's scatter-adds likewise). The coordinates are clamped to the padding (where the
+    value is 0 with a zero derivative either way)."""
+    S, C = tex.shape[0], tex.shape[-1]
+    pad = jnp.pad(tex, ((1, 2), (1, 2), (0, 0)))  # texel (j, i) at (j + 1, i + 1)
+    quad = jnp.concatenate([pad[:-1, :-1], pad[:-1, 1:], pad[1:, :-1], pad[1:, 1:]], axis=-1)
+    u, v = jnp.clip(u, -1.0, float(S)), jnp.clip(v, -1.0, float(S))
     x0, y0 = jnp.floor(u), jnp.floor(v)
     fx, fy = (u - x0)[..., None], (v - y0)[..., None]
-    x0, y0 = x0.astype(jnp.int32), y0.astype(jnp.int32)
-
-    def at(ix, iy):
-        inside = (ix >= 0) & (ix < S) & (iy >= 0) & (iy < S)
-        val = tex[jnp.clip(iy, 0, S - 1), jnp.clip(ix, 0, S - 1)]
-        return jnp.where(inside[..., None], val, 0.0)
-
-    top = at(x0, y0) * (1 - fx) + at(x0 + 1, y0) * fx
-    bot = at(x0, y0 + 1) * (1 - fx) + at(x0 + 1, y0 + 1) * fx
+    rows = (y0.astype(jnp.int32) + 1) * (S + 2) + (x0.astype(jnp.int32) + 1)
+    q = quad.reshape(-1, 4 * C)[materialize(rows)]
+    c00, c01, c10, c11 = (q[..., k * C : (k + 1) * C] for k in range(4))
+    top = c00 * (1 - fx) + c01 * fx
+    bot = c10 * (1 - fx) + c11 * fx
     return top * (1 - fy) + bot * fy
 
 
@@ -248,8 +289,17 @@ def _grid(k, dtype):
     return jnp.asarray(g, dtype)
 
 
+def _light_coords(view, proj, points):
+    """(N, 4) light-camera (clip x, clip y, clip w, view depth) of points (N, 3): one matrix
+    product (its backward two more; per-component sums over the receivers, as `project`
+    writes them, became one reduction over all receivers per matrix entry in the backward)."""
+    m = proj @ view
+    rows = jnp.stack([m[0], m[1], m[3], -view[2]])
+    return points @ rows[:, :3].T + rows[None, :, 3]
+
+
 def _map_visibility(tex, view, proj, texel, zmin, tan_t, is_point, pts, nrm, to_light, taps):
-    # is_point: () bool array (texel grows with depth under a perspective light camera)
+    # is_point: static bool (texel grows with depth under a perspective light camera)
     """Visibility (N,) of one light's mesh shadow map at receivers pts (N, 3) with unit normals
     nrm (N, 3) and unit vectors to the light to_light (N, 3)."""
     S = tex.shape[0]
@@ -257,16 +307,21 @@ def _map_visibility(tex, view, proj, texel, zmin, tan_t, is_point, pts, nrm, to_
     side = jnp.where(cos < 0, -1.0, 1.0)
     cos_abs = jnp.abs(cos)
     slope = jnp.minimum(safe_sqrt(1.0 - cos_abs * cos_abs) / jnp.maximum(cos_abs, 1e-3), MAX_SLOPE)
-    cam = Camera(view, proj, jnp.zeros((), view.dtype), jnp.ones((), view.dtype), S, S)
-    _, z0 = project(pts, cam)
-    tx = texel * jnp.where(is_point, jnp.maximum(z0, 1e-6), 1.0)
+    if is_point:
+        tx = texel * jnp.maximum(_light_coords(view, proj, pts)[:, 3], 1e-6)
+    else:
+        tx = jnp.broadcast_to(texel, cos.shape)
     p = pts + (side * NORMAL_OFFSET * tx)[:, None] * nrm
-    clip, z = project(p, cam)
-    w = clip[:, 3]
+    q = _light_coords(view, proj, p)
+    w, z = q[:, 2], q[:, 3]
     ok = w > 1e-9
     w = jnp.where(ok, w, 1.0)
-    u = 0.5 * (clip[:, 0] / w + 1.0) * S - 0.5
-    v = 0.5 * (1.0 - clip[:, 1] / w) * S - 0.5
+    u = 0.5 * (q[:, 0] / w + 1.0) * S - 0.5
+    v = 0.5 * (1.0 - q[:, 1] / w) * S - 0.5
+    # their cotangents computed once (XLA's CPU fusion recomputed the lookup's backward chain in
+    # every consumer: 256^2 render gradient with a shadowed light 299 -> 184 ms with the sphere
+    # terms' likewise, benchmarks/shading.py scene)
+    u, v, z = materialize_grad(u), materialize_grad(v), materialize_grad(z)
     bias0 = DEPTH_BIAS * tx
     tau = DEPTH_SOFTNESS * tx
 
@@ -326,6 +381,7 @@ def sphere_visibility(
         t = jnp.sum(v * to_light, axis=-1)
         d = safe_norm(v - t[:, None] * to_light, axis=-1)
         dist2 = jnp.sum(v * v, axis=-1)
+        t, d, dist2 = materialize_grad(t), materialize_grad(d), materialize_grad(dist2)
         beta = atan2(d, t)
         alpha = atan2(r, safe_sqrt(dist2 - r * r))
         small = jnp.maximum(jnp.minimum(alpha, theta), 1e-6)
@@ -358,8 +414,9 @@ def shadow_visibility(maps: ShadowMaps | None, points, normals, *, taps: int | N
     nd = lights.direction.shape[0]
     nl = nd + lights.point_position.shape[0]
     batch = points.shape[:-1]
-    pts = points.reshape(-1, 3)
-    nrm = safe_normalize(normals.reshape(-1, 3))
+    # the receivers' cotangents (sums over every light, sphere and tap) computed once
+    pts = materialize_grad(points.reshape(-1, 3))
+    nrm = materialize_grad(safe_normalize(normals.reshape(-1, 3)))
     dsoft, psoft = lights.softness_degrees()
     tan_all = jnp.tan(jnp.deg2rad(jnp.concatenate([dsoft, psoft])))
     idx = np.asarray(maps.casting, np.int32)
@@ -376,16 +433,29 @@ def shadow_visibility(maps: ShadowMaps | None, points, normals, *, taps: int | N
         else:
             vecs.append(pt_l[:, i - nd])
             dists.append(pt_dist[:, i - nd])
-    to_light = jnp.stack(vecs)
+    to_light = materialize_grad(jnp.stack(vecs))
     tan_t = tan_all[idx]
     vis = jnp.ones((len(idx), pts.shape[0]), pts.dtype)
     if maps.maps is not None:
-        is_point = jnp.asarray(idx >= nd)
-        vis = vis * jax.vmap(
-            lambda m, V, P, tx, zm, tt, ip, tl: _map_visibility(
-                m, V, P, tx, zm, tt, ip, pts, nrm, tl, taps
-            )
-        )(maps.maps, maps.view, maps.projection, maps.texel, maps.zmin, tan_t, is_point, to_light)
+        # one lookup per casting light (static loop: a point light's texel grows with depth)
+        vis = vis * jnp.stack(
+            [
+                _map_visibility(
+                    maps.maps[k],
+                    maps.view[k],
+                    maps.projection[k],
+                    maps.texel[k],
+                    maps.zmin[k],
+                    tan_t[k],
+                    i >= nd,
+                    pts,
+                    nrm,
+                    to_light[k],
+                    taps,
+                )
+                for k, i in enumerate(maps.casting)
+            ]
+        )
     if maps.spheres is not None:
         inf = jnp.full(pts.shape[:1], jnp.inf, pts.dtype)
         ldist = jnp.stack([inf if d is None else d for d in dists])
@@ -395,3 +465,24 @@ def shadow_visibility(maps: ShadowMaps | None, points, normals, *, taps: int | N
     # scatter the casting lights into all nl slots (others fully visible)
     full = jnp.ones((nl, pts.shape[0]), pts.dtype).at[idx].set(vis)
     return jnp.moveaxis(full, 0, -1).reshape(*batch, nl)
+
+
+def layer_shadow_visibility(maps: ShadowMaps | None, points, normals):
+    """`shadow_visibility` of a ray-cast layer (spheres, planes): per pixel, or with
+    `maps.layer_stride` f > 1 (and the image's sides multiples of f) once per f x f pixel block,
+    at the block's mean point and normal, upsampled bilinearly to the pixels (the "fit" preset:
+    its light map has about one texel per two pixels, so the lookup has no finer detail; one
+    quarter of the receivers). Continuous in the receivers, so in the parameters.
+
+    Shapes: points (H, W, 3) m, normals (H, W, 3) -> (H, W, nl); None when maps is None.
+    """
+    f = 1 if maps is None else maps.layer_stride
+    H, W = points.shape[:2]
+    if f <= 1 or H % f or W % f:
+        return shadow_visibility(maps, points, normals)
+
+    def block_mean(a):
+        return jnp.mean(a.reshape(H // f, f, W // f, f, 3), axis=(1, 3))
+
+    low = shadow_visibility(maps, block_mean(points), block_mean(normals))
+    return jax.image.resize(low, (H, W, low.shape[-1]), "linear")

@@ -12,7 +12,7 @@ from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.rays import _dot3, ray_sphere
 from diffcloth.render.sampling import _normalize3
 from diffcloth.render.shade import blinn_phong
-from diffcloth.render.shadows import ShadowMaps, shadow_visibility
+from diffcloth.render.shadows import ShadowMaps, layer_shadow_visibility
 from diffcloth.render.sky import SkyMaps, layer_sky_visibility
 from diffcloth.shapes import Sphere
 
@@ -78,7 +78,7 @@ def _sphere_layer(
         depth = jnp.take_along_axis(depth, nearest, axis=0)[0]
         point = jnp.take_along_axis(point, nearest[..., None], axis=0)[0]
         normal = jnp.take_along_axis(normal, nearest[..., None], axis=0)[0]
-    vis = shadow_visibility(shadows, point, normal)
+    vis = layer_shadow_visibility(shadows, point, normal)
     diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance, vis)
     amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
     if sky is not None:  # ambient occlusion
