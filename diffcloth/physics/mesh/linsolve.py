@@ -161,6 +161,9 @@ class _Pattern:
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(c, minlength=m))]).astype(np.int32)
         self.nnz, self.size = len(key), m
         self.dofs = (fv[vperm][:, None] * 3 + e3[None, :]).ravel()
+        self.pos = np.full(n, -1, np.int64)  # vertex -> its permuted position (-1: pinned)
+        self.pos[fv] = vinv
+        self.graph = graph[vperm][:, vperm].tocsr()  # the vertex graph, permuted
 
 
 @functools.lru_cache(maxsize=8)
@@ -169,7 +172,34 @@ def _pattern(nbr_bytes: bytes, free_bytes: bytes, n: int, k: int) -> _Pattern:
     return _Pattern(nbr, np.frombuffer(free_bytes, np.bool_))
 
 
-def _factor_now(h: np.ndarray, nbr: np.ndarray, free: np.ndarray) -> int:
+def _coupled(pat: _Pattern, a, idx, w, core):
+    """The system a (permuted CSC) plus the pair couplings w_k w_l core between vertices idx_k
+    and idx_l (k != l; the diagonal blocks are in a already), reordered for the new pattern:
+    (matrix, dofs)."""
+    import scipy.sparse as sp
+
+    live = np.any(core != 0, axis=(1, 2))
+    idx, w, core = idx[live], w[live].astype(np.float64), core[live].astype(np.float64)
+    k, l = np.nonzero(~np.eye(4, dtype=bool))  # the 12 off-diagonal slots
+    bi, bj = pat.pos[idx[:, k]].ravel(), pat.pos[idx[:, l]].ravel()
+    blk = ((w[:, k] * w[:, l])[:, :, None, None] * core[:, None]).reshape(-1, 3, 3)
+    ok = (bi >= 0) & (bj >= 0)  # pinned rows and columns stay the identity
+    bi, bj, blk = bi[ok], bj[ok], blk[ok]
+    e3 = np.arange(3)
+    rows = (bi[:, None, None] * 3 + e3[None, :, None] + 0 * e3[None, None, :]).ravel()
+    cols = (bj[:, None, None] * 3 + 0 * e3[None, :, None] + e3[None, None, :]).ravel()
+    m, nv = pat.size, pat.size // 3
+    a = (a + sp.csc_matrix((blk.ravel(), (rows, cols)), shape=(m, m))).tocsc()
+    g = sp.csr_matrix((np.ones(len(bi)), (bi, bj)), shape=(nv, nv))
+    g = (pat.graph + g + g.T).tocsr()
+    g.setdiag(0)
+    g.eliminate_zeros()
+    vperm = _vertex_ordering(g)  # the contacts join distant vertices: order again
+    perm = (vperm[:, None] * 3 + e3[None, :]).ravel()
+    return a[perm][:, perm].tocsc(), pat.dofs[perm]
+
+
+def _factor_now(h: np.ndarray, nbr: np.ndarray, free: np.ndarray, *couplings) -> int:
     import scipy.sparse as sp
     import scipy.sparse.linalg as spl
 
@@ -181,10 +211,15 @@ def _factor_now(h: np.ndarray, nbr: np.ndarray, free: np.ndarray) -> int:
     # factored in the system's own precision: float32 halves the factor's memory traffic (a
     # 2,846-vertex drape: ~0.7x the float64 time); the Krylov iterations it preconditions, on
     # the exact Hessian, make up for its rounding
-    data = data.astype(np.float32 if h.dtype == np.float32 else np.float64)
+    dtype = np.float32 if h.dtype == np.float32 else np.float64
+    data = data.astype(dtype)
+    dofs = pat.dofs
     lu = None
     if pat.size and np.all(np.isfinite(data)):
         a = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.size, pat.size))
+        if couplings and np.all(np.isfinite(couplings[2])):
+            a, dofs = _coupled(pat, a, *couplings)
+        a = a.astype(dtype)
         try:
             lu = spl.splu(a, permc_spec="NATURAL", diag_pivot_thresh=0.0,
                           options={"SymmetricMode": True})  # fmt: skip
@@ -194,7 +229,7 @@ def _factor_now(h: np.ndarray, nbr: np.ndarray, free: np.ndarray) -> int:
         lu = "identity"
     token = _NEXT[0]
     _NEXT[0] += 1
-    _FACTORS[token] = (lu, pat, data.dtype)
+    _FACTORS[token] = (lu, pat.size, dofs, dtype)
     while len(_FACTORS) > _KEEP:
         _FACTORS.pop(next(iter(_FACTORS)))
     return token
@@ -205,20 +240,21 @@ def _solve_now(token: int, rhs: np.ndarray) -> np.ndarray:
     if entry is None:
         return np.full(rhs.shape, np.nan, rhs.dtype)
     _FACTORS[token] = entry  # most recently used last: eviction drops the least recently used
-    lu, pat, dtype = entry
+    lu, size, dofs, dtype = entry
     if lu is None:
         return np.full(rhs.shape, np.nan, rhs.dtype)
     z = rhs.astype(dtype).reshape(-1)  # pinned rows: the identity
-    if pat.size:
-        z[pat.dofs] = lu.solve(z[pat.dofs])
+    if size:
+        z[dofs] = lu.solve(z[dofs])
     return z.reshape(rhs.shape).astype(rhs.dtype)
 
 
-def _host_factor(h, nbr, free):
+def _host_factor(h, nbr, free, *couplings):
     h = np.asarray(h)
     nbr = np.ascontiguousarray(np.asarray(nbr, np.int32))
     free = np.ascontiguousarray(np.asarray(free, np.bool_))
-    return np.asarray(_on_owner(_factor_now, h, nbr, free), np.int32)
+    couplings = tuple(np.asarray(c) for c in couplings)
+    return np.asarray(_on_owner(_factor_now, h, nbr, free, *couplings), np.int32)
 
 
 def _host_solve(token, rhs):
@@ -228,15 +264,20 @@ def _host_solve(token, rhs):
 # ------------------------------------------------------------------------------- JAX side
 
 
-def factor(h, neighbors, free=None):
+def factor(h, neighbors, free=None, couplings=None):
     """Factor the block-row matrix h (n, K, 3, 3) on the host; returns a token (int32 scalar)
     for `solve`. free (n,) bool: the system is over these vertices only (the others' rows and
-    columns are the identity; default all). Tokens stay valid while used (the 16 most recently
-    made or used are kept)."""
+    columns are the identity; default all). couplings: None, or (idx (P, 4) int, w (P, 4),
+    core (P, 3, 3)) adding the block w_k w_l core between vertices idx_k and idx_l for k != l
+    (self-contact pairs, which join vertices that are not mesh neighbours; rows with a zero
+    core are skipped): such a system is ordered again on each factorization. Tokens stay valid
+    while used (the 16 most recently made or used are kept)."""
     if free is None:
         free = jnp.ones(h.shape[0], bool)
     out = jax.ShapeDtypeStruct((), jnp.int32)
-    return jax.pure_callback(_host_factor, out, h, neighbors, free, vmap_method="sequential")
+    extra = () if couplings is None else tuple(couplings)
+    return jax.pure_callback(_host_factor, out, h, neighbors, free, *extra,
+                             vmap_method="sequential")  # fmt: skip
 
 
 def solve(token, rhs):

@@ -40,9 +40,11 @@ __all__ = [
     "FrictionFrame",
     "barrier",
     "barrier_blocks",
+    "barrier_cores",
     "barrier_energy",
     "friction_energy",
     "friction_blocks",
+    "friction_cores",
     "friction_frame",
     "mollifier",
     "find_pairs",
@@ -101,10 +103,11 @@ def barrier_energy(cloth, sc: SelfContact, x, pairs: Pairs):
     return jnp.where(pairs.overflow, jnp.nan, sc.stiffness * jnp.sum(e))
 
 
-def barrier_blocks(cloth, sc: SelfContact, x, pairs: Pairs):
-    """(n, 3, 3) PSD diagonal blocks of the barrier's Hessian (Gauss-Newton: kappa A b''(d)
-    w_k^2 u u^T on each vertex k of a pair, u the unit gap direction).
-    Shapes: x (n, 3) -> (n, 3, 3)."""
+def barrier_cores(cloth, sc: SelfContact, x, pairs: Pairs):
+    """The barrier's Gauss-Newton Hessian per pair as (idx (P, 4), w (P, 4), core (P, 3, 3)):
+    its block between the pair's vertices idx_k and idx_l is w_k w_l core, core = kappa A b''(d)
+    u u^T (u the unit gap direction; PSD, zero for invalid pairs and on overflow).
+    Shapes: x (n, 3) -> ((P, 4), (P, 4), (P, 3, 3))."""
     x = jax.lax.stop_gradient(x)
     q = x[pairs.idx]
     w = weights(q, pairs.kind)
@@ -113,10 +116,21 @@ def barrier_blocks(cloth, sc: SelfContact, x, pairs: Pairs):
     u = g / jnp.maximum(d, 1e-30)[:, None]
     _, b2 = _barrier_d(d, sc.thickness)
     area = _pair_area(cloth, pairs) * mollifier(cloth, x, pairs)
-    s = jnp.where(pairs.valid, sc.stiffness * area * b2, 0.0)
-    blk = (s[:, None] * w * w)[:, :, None, None] * (u[:, :, None] * u[:, None, :])[:, None]
-    out = jax.ops.segment_sum(blk.reshape(-1, 3, 3), pairs.idx.reshape(-1), num_segments=x.shape[0])
-    return jnp.where(pairs.overflow, 0.0, out)
+    s = jnp.where(pairs.valid & ~pairs.overflow, sc.stiffness * area * b2, 0.0)
+    return pairs.idx, w, s[:, None, None] * (u[:, :, None] * u[:, None, :])
+
+
+def _diagonal(idx, w, core, n):
+    """(n, 3, 3) sums of the pairs' diagonal blocks w_k^2 core on their vertices."""
+    blk = (w * w)[:, :, None, None] * core[:, None]
+    return jax.ops.segment_sum(blk.reshape(-1, 3, 3), idx.reshape(-1), num_segments=n)
+
+
+def barrier_blocks(cloth, sc: SelfContact, x, pairs: Pairs):
+    """(n, 3, 3) PSD diagonal blocks of the barrier's Hessian (Gauss-Newton: kappa A b''(d)
+    w_k^2 u u^T on each vertex k of a pair, u the unit gap direction; `barrier_cores`).
+    Shapes: x (n, 3) -> (n, 3, 3)."""
+    return _diagonal(*barrier_cores(cloth, sc, x, pairs), x.shape[0])
 
 
 def step_bound(x, p, pairs: Pairs, iters: int = 16):
@@ -188,22 +202,27 @@ def friction_energy(frame: FrictionFrame, x, x_prev, mu, eps):
     return jnp.where(frame.overflow, jnp.nan, e)
 
 
-def friction_blocks(frame: FrictionFrame, x, x_prev, mu, eps):
-    """(n, 3, 3) PSD diagonal blocks of the lagged friction's Hessian: mu lambda w_k^2 times the
-    Hessian of sqrt(|u_T|^2 + eps^2) (the tangential projector over its value, less the slip
-    direction's part), for the preconditioner (the friction is stiff where a layer sticks: mu
-    lambda / eps).
-    Shapes: x, x_prev (n, 3) -> (n, 3, 3)."""
+def friction_cores(frame: FrictionFrame, x, x_prev, mu, eps):
+    """The lagged friction's Hessian per pair as (idx (P, 4), w (P, 4), core (P, 3, 3)), block
+    w_k w_l core between vertices idx_k and idx_l: core = mu lambda times the Hessian of
+    sqrt(|u_T|^2 + eps^2) (the tangential projector over its value, less the slip direction's
+    part; PSD). The friction is stiff where a layer sticks: mu lambda / eps.
+    Shapes: x, x_prev (n, 3) -> ((P, 4), (P, 4), (P, 3, 3))."""
     u = jnp.einsum("pk,pki->pi", frame.w, jax.lax.stop_gradient(x - x_prev)[frame.idx])
     nrm = frame.normal
     ut = u - jnp.sum(u * nrm, axis=-1, keepdims=True) * nrm
     s = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps)
     proj = jnp.eye(3, dtype=x.dtype)[None] - nrm[:, :, None] * nrm[:, None, :]
     hess = proj / s[:, None, None] - ut[:, :, None] * ut[:, None, :] / (s**3)[:, None, None]
-    blk = (mu * frame.lam[:, None] * frame.w**2)[:, :, None, None] * hess[:, None]
-    out = jax.ops.segment_sum(blk.reshape(-1, 3, 3), frame.idx.reshape(-1),
-                              num_segments=x.shape[0])  # fmt: skip
-    return jnp.where(frame.overflow, 0.0, out)
+    lam = jnp.where(frame.overflow, 0.0, mu * frame.lam)
+    return frame.idx, frame.w, lam[:, None, None] * hess
+
+
+def friction_blocks(frame: FrictionFrame, x, x_prev, mu, eps):
+    """(n, 3, 3) PSD diagonal blocks of the lagged friction's Hessian (`friction_cores`), for
+    the preconditioner.
+    Shapes: x, x_prev (n, 3) -> (n, 3, 3)."""
+    return _diagonal(*friction_cores(frame, x, x_prev, mu, eps), x.shape[0])
 
 
 def step_pairs(cloth, sc: SelfContact, x, p):

@@ -196,6 +196,22 @@ def _hessian(problem: _Problem, x, theta, pairs=None):
     return hessian.assemble(cloth, fabric, x, elastic_scale=scale, diag=diag)
 
 
+def _couplings(problem: _Problem, x, theta, pairs=None):
+    """Self-contact: the PSD couplings between the vertices of each pair (the barrier's
+    Gauss-Newton term and, in an implicit step, the lagged friction's), for `linsolve.factor`;
+    None without self-contact."""
+    if not problem.self_contact:
+        return None
+    cloth, sc = theta["cloth"], theta["self_contact"]
+    x = _place(theta, x)
+    pairs = sce.find_pairs(cloth, sc, x, sc.thickness) if pairs is None else pairs
+    parts = [sce.barrier_cores(cloth, sc, x, pairs)]
+    if problem.kind == "implicit":
+        mu = theta["fabric"].friction * sc.friction
+        parts.append(sce.friction_cores(theta["sc_frame"], x, theta["x_n"], mu, _FRICTION_EPS))
+    return tuple(jnp.concatenate(a) for a in zip(*parts, strict=True))
+
+
 def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     """Minimise `_energy` over the free vertices from x0 (Levenberg-Marquardt-damped Newton,
     PCG on the assembled Hessian, a backtracking line search on each step)."""
@@ -228,7 +244,7 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     def factor(x, mu, pairs=None):
         hmat = _hessian(problem, x, theta, pairs)
         hmat = hmat.at[:, 0].add((mu * mass)[:, None, None] * eye[None])
-        return linsolve.factor(hmat, cloth.neighbors, free)
+        return linsolve.factor(hmat, cloth.neighbors, free, _couplings(problem, x, theta, pairs))
 
     def body(c):
         x, e, g, mu, nu, eta, k, res, token, fresh = c
@@ -350,7 +366,7 @@ def _argmin_jvp(problem, primals, tangents):
     hmat = _hessian(problem, x, theta)
     if problem.settings.linear_solver == "direct":  # the approximate Hessian's LU preconditions
         nbr = _cloth_of(theta).neighbors
-        token = linsolve.factor(hmat, nbr, free)
+        token = linsolve.factor(hmat, nbr, free, _couplings(problem, x, theta))
         pre = lambda r: jnp.where(fmask, linsolve.solve(token, r), r)
     else:
         block = _block_jacobi(hessian.block_diagonal(hmat), free)
