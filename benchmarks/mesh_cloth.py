@@ -19,6 +19,8 @@ Cases
   drape_grad     jax.value_and_grad of the mean rim height of that equilibrium with respect to
                  every Fabric field (the Fabric pytree): forward solve + implicit-function-theorem
                  adjoint, warm (median), `grad_s`. Aim: < 2 s.
+                 With --starts K: also the equilibrium from K seeded fold starts (lobes and
+                 phase of STARTS), each timed once, and their median ("mesh_drape_starts").
   implicit_step  one `implicit_step` (h = 1/60 s) of a 10,000-vertex hanging square
                  (rectangle(0.5, 0.5, h) hung in the xy-plane, top edge pinned; the first step
                  from rest), warm (median), `step_ms`, and Newton iterations.
@@ -99,18 +101,24 @@ def common(dtype: str, n: int) -> dict:
 # ------------------------------------------------------------------------------------ scenes
 
 
-def drape_scene(dtype, edge=EDGE):
-    """(cloth, fabric, x_start, colliders) of the Cusick drape benchmark (edge: target edge
-    length of the disc, m)."""
+#: the seeded fold starts of `--starts K`: (lobes, phase in rad); the first is the default start
+STARTS = ((6, 0.3), (5, 1.1), (7, 2.0), (4, 0.7), (8, 2.6))
+
+
+def drape_scene(dtype, edge=EDGE, start=STARTS[0]):
+    """(cloth, fabric, x_start, colliders, r) of the Cusick drape benchmark (edge: target edge
+    length of the disc, m; start: the seeded fold's (lobes, phase))."""
     mesh = pm.disc(R, edge, rings_at=(PEDESTAL,))
     r = np.hypot(mesh.vertices[:, 0], mesh.vertices[:, 2])
     cloth = pm.make_cloth(mesh, pinned=r <= PEDESTAL + 1e-9, dtype=dtype)
     fabric = pm.make_fabric(PRESET, dtype=dtype)
-    # seeded fold: 6 lobes, 2 mm at the rim, growing quadratically from the pedestal edge
+    # seeded fold: 6 lobes (by default), 2 mm at the rim, growing quadratically from the
+    # pedestal edge
     phi = np.arctan2(mesh.vertices[:, 2], mesh.vertices[:, 0])
     s = np.clip((r - PEDESTAL) / (R - PEDESTAL), 0.0, None)
     x0 = mesh.vertices.copy()
-    x0[:, 1] += 2e-3 * s**2 * np.cos(6 * phi + 0.3)
+    lobes, phase = start
+    x0[:, 1] += 2e-3 * s**2 * np.cos(lobes * phi + phase)
     cols = pm.make_mesh_colliders(
         cylinders=[((0.0, -THICKNESS, 0.0), PEDESTAL, 0.3)], thickness=THICKNESS, dtype=dtype
     )
@@ -142,6 +150,34 @@ def hanging_scene(dtype, edge):
 
 
 # ------------------------------------------------------------------------------------- cases
+
+
+def bench_drape_starts(dtype, starts, out, max_iters=None, edge=EDGE):
+    """The equilibrium from `starts` seeded fold starts (STARTS[:starts]), each timed once warm
+    (one compiled solve): the Newton step count, and so the time, moves with the start and with
+    float32 rounding, so one start's figure is one draw of a spread. One line, "mesh_drape_starts":
+    per-start seconds, iterations, drape coefficients, and their median."""
+    cloth, fabric, _, cols, r = drape_scene(dtype, edge)
+    g = jnp.asarray(GRAVITY, dtype)
+    st = pm.SolverSettings() if max_iters is None else pm.SolverSettings(max_iters=max_iters)
+    solve = jax.jit(lambda f, x: pm.equilibrium(cloth, f, x, gravity=g, colliders=cols,
+                                                settings=st))  # fmt: skip
+    xs = [drape_scene(dtype, edge, start)[2] for start in STARTS[:starts]]
+    jax.block_until_ready(solve(fabric, xs[0]))
+    secs, its, conv, dcs = [], [], [], []
+    for x in xs:
+        t0 = time.perf_counter()
+        res = jax.block_until_ready(solve(fabric, x))
+        secs.append(round(time.perf_counter() - t0, 4))
+        its.append(int(res.iterations))
+        conv.append(bool(res.converged))
+        dcs.append(round(drape_coefficient(res.x, r), 4))
+    row = dict(bench="mesh_drape_starts", **common(str(np.dtype(dtype)), cloth.num_vertices),
+               starts=[list(s) for s in STARTS[:starts]], equilibrium_s=secs,
+               median_s=round(float(np.median(secs)), 4), iterations=its, converged=conv,
+               drape_coefficient=dcs, max_iters=st.max_iters, max_rss_mb=max_rss_mb(),
+               aim_s=2.0, met=all(conv) and float(np.median(secs)) < 2.0)  # fmt: skip
+    emit(row, out)
 
 
 def bench_drape(dtype, repeats, out, max_iters=None, edge=EDGE):
@@ -228,6 +264,9 @@ def main(argv=None):
     parser.add_argument("--edge", type=float, default=EDGE,
                         help=f"the drape disc's edge length, m (default {EDGE}: about 2,800 vertices; "
                         "0.011: about 700)")  # fmt: skip
+    parser.add_argument("--starts", type=int, default=0,
+                        help=f"also time the drape from this many seeded fold starts (at most "
+                        f"{len(STARTS)}), one line with their spread")  # fmt: skip
     parser.add_argument("--out", help="append the JSON lines to this file")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
@@ -240,6 +279,9 @@ def main(argv=None):
         dtype = jnp.dtype(dt)
         if "drape" in cases:
             bench_drape(dtype, repeats, out, args.max_iters, args.edge)
+            if args.starts:
+                bench_drape_starts(dtype, min(args.starts, len(STARTS)), out, args.max_iters,
+                                   args.edge)  # fmt: skip
         if "step" in cases:
             bench_step(dtype, repeats, out)
     if out:
