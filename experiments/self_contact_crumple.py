@@ -99,7 +99,7 @@ def crumple(scene, size, edge, seconds, capacity=24, log=print, every=1, max_wal
                                                     settings))  # fmt: skip
         x, v = jnp.asarray(x0), jnp.zeros(x0.shape)
         faces = np.asarray(cloth.faces)
-        frames, rows = [np.asarray(x)], []
+        frames, rows, ids = [np.asarray(x)], [], [0]
         nframes = int(round(seconds / DT))
         start = time.perf_counter()
         for k in range(nframes):
@@ -122,19 +122,21 @@ def crumple(scene, size, edge, seconds, capacity=24, log=print, every=1, max_wal
             log(json.dumps(row))
             if (k + 1) % every == 0 or k + 1 == nframes or not bool(conv):
                 frames.append(xa)
+                ids.append(k + 1)
             if not bool(conv) or not finite:
                 break
             if max_wall is not None and time.perf_counter() - start > max_wall:
                 if (k + 1) % every:
                     frames.append(xa)
+                    ids.append(k + 1)
                 log(f"stopped after frame {k + 1}: past --max-wall {max_wall} s")
                 break
-    return cloth, frames, rows, dict(thickness_m=thickness, capacity=capacity,
+    return cloth, frames, rows, dict(frame_ids=ids, thickness_m=thickness, capacity=capacity,
                                      n_vertices=int(cloth.num_vertices),
                                      n_faces=int(cloth.num_faces))  # fmt: skip
 
 
-def _png(path, cloth, frames, title):
+def _png(path, cloth, frames, ids, title):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -155,7 +157,7 @@ def _png(path, cloth, frames, title):
         ax.set_ylim(lo[2], hi[2])
         ax.set_zlim(lo[1], hi[1])
         ax.set_box_aspect(np.maximum(hi - lo, 1e-3)[[0, 2, 1]])
-        ax.set_title(f"{title} frame {i}", fontsize=8)
+        ax.set_title(f"{title} t = {ids[i] * DT:.2f} s", fontsize=8)
         ax.set_axis_off()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -194,6 +196,7 @@ def main(argv=None):
     cloth, frames, rows, info = crumple(
         args.scene, size, edge, args.seconds, args.capacity, log, args.every, args.max_wall
     )
+    ids = info.pop("frame_ids")
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                             capture_output=True, text=True).stdout.strip()  # fmt: skip
     summary = dict(scene=args.scene, size_m=size, edge_m=edge, seconds=args.seconds,
@@ -206,7 +209,7 @@ def main(argv=None):
                    commit=commit, load_1min=os.getloadavg()[0], **info)  # fmt: skip
     log(json.dumps(summary))
     (out / f"{tag}.json").write_text(json.dumps(dict(summary=summary, frames=rows), indent=1))
-    _png(out / f"{tag}.png", cloth, frames, args.scene)
+    _png(out / f"{tag}.png", cloth, frames, ids, args.scene)
 
 
 if __name__ == "__main__":
