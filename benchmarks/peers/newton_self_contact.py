@@ -3,7 +3,7 @@ solver, in the same run: each engine's step with its self-contact handling on an
 
     python benchmarks/peers/newton_self_contact.py                 # 2,667 vertices, float64
     python benchmarks/peers/newton_self_contact.py --edge 0.0054   # 10,206 vertices
-    python benchmarks/peers/newton_self_contact.py --out benchmarks/results/newton_cloth.jsonl
+    python benchmarks/peers/newton_self_contact.py --out benchmarks/results/newton_self_contact.jsonl
 
 The scene of benchmarks/peers/newton_cloth.py (a 0.5 m square of a 500 N/m membrane hanging
 from its top edge, one step of 1/60 s from rest, equal parameters): no pair of the sheet comes
