@@ -19,7 +19,7 @@ Cases
   drape_grad     jax.value_and_grad of the mean rim height of that equilibrium with respect to
                  every Fabric field (the Fabric pytree): forward solve + implicit-function-theorem
                  adjoint, warm (median), `grad_s`. Aim: < 2 s.
-                 With --starts K: also the equilibrium from K seeded fold starts (lobes and
+  (--starts K)   with the drape case: the equilibrium from K seeded fold starts (lobes and
                  phase of STARTS), each timed once, and their median ("mesh_drape_starts").
   implicit_step  one `implicit_step` (h = 1/60 s) of a 10,000-vertex hanging square
                  (rectangle(0.5, 0.5, h) hung in the xy-plane, top edge pinned; the first step
