@@ -194,22 +194,9 @@ def shadow_maps(
     casting = tuple(i for i, f in enumerate(lights.shadows) if f)
     n_dir = sum(1 for i in casting if i < nd)
     sph = spheres.batched() if spheres is not None else None
+    settings = (casting, n_dir, int(size), int(taps), fast, int(layer_stride))
     if mesh is None or mesh[1].shape[0] == 0:
-        return ShadowMaps(
-            lights,
-            sph,
-            None,
-            None,
-            None,
-            None,
-            None,
-            casting,
-            n_dir,
-            int(size),
-            int(taps),
-            fast,
-            int(layer_stride),
-        )
+        return ShadowMaps(lights, sph, None, None, None, None, None, *settings)
     positions, faces = mesh[0], jnp.asarray(mesh[1]).astype(jnp.int32)
     neighbors = mesh[2] if len(mesh) > 2 and mesh[2] is not None else edge_neighbors(faces)
     center, radius = _bound(positions)
@@ -243,21 +230,7 @@ def shadow_maps(
         return _render_map(positions, faces, neighbors, cam)
 
     maps, zmin = jax.lax.map(one, (view, proj, near, far))
-    return ShadowMaps(
-        lights,
-        sph,
-        maps,
-        view,
-        proj,
-        texel,
-        zmin,
-        casting,
-        n_dir,
-        int(size),
-        int(taps),
-        fast,
-        int(layer_stride),
-    )
+    return ShadowMaps(lights, sph, maps, view, proj, texel, zmin, *settings)
 
 
 def _bilinear(tex, u, v):
