@@ -34,6 +34,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mesh_cloth  # noqa: E402
 import newton_cloth as nc  # noqa: E402
+import numpy as np  # noqa: E402
 from _timing import emit  # noqa: E402
 from _timing import meta as _meta_line  # noqa: E402
 
@@ -92,8 +93,8 @@ def main(argv=None):
                                                       self_contact=sc if on else None).x)
         for on in (False, True)
     }  # fmt: skip
-    model = nc.newton_model(cloth.rest.__array__(), cloth.faces.__array__(),
-                            cloth.pinned.__array__(), nc.newton_params(cloth, fabric))  # fmt: skip
+    model = nc.newton_model(np.asarray(cloth.rest), np.asarray(cloth.faces),
+                            np.asarray(cloth.pinned), nc.newton_params(cloth, fabric))  # fmt: skip
     vbd = {on: VBD(model, args.iterations, thickness if on else None) for on in (False, True)}
     progs = {("diffcloth", on): (lambda on=on: jax.block_until_ready(dc[on](state)))
              for on in (False, True)}  # fmt: skip
