@@ -26,6 +26,20 @@ __all__ = ["assemble", "block_diagonal", "matvec"]
 _B0 = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])  # numpy: no backend start at import
 
 
+def _tensile_part(s):
+    """The positive part (eigenvalues clipped at 0) of symmetric 2 x 2 matrices s (m, 2, 2), in
+    closed form: s where both eigenvalues are >= 0, 0 where both are <= 0, else
+    l1 (s - l2 I) / (l1 - l2) (the projector on the positive eigenvector, times l1)."""
+    a, b, c = s[:, 0, 0], s[:, 0, 1], s[:, 1, 1]
+    mid = 0.5 * (a + c)
+    rad = jnp.sqrt(0.25 * (a - c) ** 2 + b * b)
+    l1, l2 = mid + rad, mid - rad
+    gap = jnp.where(rad > 0, 2.0 * rad, 1.0)
+    part = (l1 / gap)[:, None, None] * (s - l2[:, None, None] * jnp.eye(2, dtype=s.dtype)[None])
+    part = jnp.where((l1 > 0)[:, None, None], part, 0.0)
+    return jnp.where((l2 >= 0)[:, None, None], s, part)
+
+
 def _membrane_blocks(cloth: ClothMesh, fabric, x):
     """(m, 3, 3, 3, 3) per-face blocks [a, b] (3 x 3 each)."""
     p = x[cloth.faces]  # (m, 3, 3)
@@ -44,8 +58,7 @@ def _membrane_blocks(cloth: ClothMesh, fabric, x):
     sig = e @ cmat  # (m, 3): (S_uu, S_vv, S_uv * 2)... S_uv = C33 e_uv / 2
     s2 = jnp.stack([jnp.stack([sig[:, 0], 0.5 * sig[:, 2]], -1),
                     jnp.stack([0.5 * sig[:, 2], sig[:, 1]], -1)], -2)  # fmt: skip
-    w, v = jnp.linalg.eigh(s2)
-    s_plus = jnp.einsum("mik,mk,mjk->mij", v, jnp.maximum(w, 0.0), v)
+    s_plus = _tensile_part(s2)
     g = jnp.einsum("mai,mij,mbj->mab", b, s_plus, b)  # (m, 3, 3)
     geo = g[:, :, :, None, None] * jnp.eye(3, dtype=x.dtype)[None, None, None, :, :]
     return cloth.face_area[:, None, None, None, None] * (gn + geo)

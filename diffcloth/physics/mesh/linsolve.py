@@ -20,8 +20,9 @@ system, pinned rows included, took ~290 ms.
 Threads: SciPy's SuperLU records each factorization's memory with the thread that made it and
 frees it only from that thread; XLA runs host callbacks on varying threads, so factors created
 on one and dropped on another leaked (5-7 MB per Newton step of a 687-vertex drape, GBs per
-solve at 2,846 vertices). Every factorization, solve and eviction therefore runs on one
-dedicated host thread.
+solve at 2,846 vertices). Every factorization and eviction therefore runs on one dedicated
+host thread; solves run on the calling thread, under a lock that keeps an eviction (the
+factors' release) from happening during one.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ __all__ = ["direct_solve", "factor", "pin_rows", "solve"]
 _FACTORS: dict[int, object] = {}
 _NEXT = [1]
 _KEEP = 16
+_FACTORS_LOCK = threading.Lock()  # held while a factorization is stored, used or evicted
 
 _OWNER: list = [None, None]  # [executor, pid]
 _OWNER_LOCK = threading.Lock()
@@ -227,25 +229,32 @@ def _factor_now(h: np.ndarray, nbr: np.ndarray, free: np.ndarray, *couplings) ->
             lu = None
     elif not pat.size:
         lu = "identity"
-    token = _NEXT[0]
-    _NEXT[0] += 1
-    _FACTORS[token] = (lu, pat.size, dofs, dtype)
-    while len(_FACTORS) > _KEEP:
-        _FACTORS.pop(next(iter(_FACTORS)))
+    with _FACTORS_LOCK:
+        token = _NEXT[0]
+        _NEXT[0] += 1
+        _FACTORS[token] = (lu, pat.size, dofs, dtype)
+        while len(_FACTORS) > _KEEP:
+            _FACTORS.pop(next(iter(_FACTORS)))
     return token
 
 
 def _solve_now(token: int, rhs: np.ndarray) -> np.ndarray:
-    entry = _FACTORS.pop(token, None)
-    if entry is None:
-        return np.full(rhs.shape, np.nan, rhs.dtype)
-    _FACTORS[token] = entry  # most recently used last: eviction drops the least recently used
-    lu, size, dofs, dtype = entry
-    if lu is None:
-        return np.full(rhs.shape, np.nan, rhs.dtype)
-    z = rhs.astype(dtype).reshape(-1)  # pinned rows: the identity
-    if size:
-        z[dofs] = lu.solve(z[dofs])
+    # on the calling thread (a solve allocates nothing that outlives it; the hop to the owner
+    # thread cost ~0.7 ms per call, a third of a 2,846-vertex drape's solve), under the lock
+    # that eviction takes: the factorization is never dropped, so never freed, on this thread
+    with _FACTORS_LOCK:
+        entry = _FACTORS.pop(token, None)
+        if entry is None:
+            return np.full(rhs.shape, np.nan, rhs.dtype)
+        _FACTORS[token] = entry  # most recently used last: eviction drops the least recent
+        lu, size, dofs, dtype = entry
+        del entry
+        if lu is None:
+            return np.full(rhs.shape, np.nan, rhs.dtype)
+        z = rhs.astype(dtype).reshape(-1)  # pinned rows: the identity
+        if size:
+            z[dofs] = lu.solve(z[dofs])
+        del lu
     return z.reshape(rhs.shape).astype(rhs.dtype)
 
 
@@ -258,7 +267,7 @@ def _host_factor(h, nbr, free, *couplings):
 
 
 def _host_solve(token, rhs):
-    return _on_owner(_solve_now, int(np.asarray(token)), np.asarray(rhs))
+    return _solve_now(int(np.asarray(token)), np.asarray(rhs))
 
 
 # ------------------------------------------------------------------------------- JAX side
@@ -299,10 +308,11 @@ def direct_solve(h, neighbors, rhs, free=None):
     return solve(factor(h, neighbors, free), rhs)
 
 
-def _cg(apply_a, b, precond, iters: int, rtol: float):
+def _cg(apply_a, b, precond, iters: int, rtol: float, keep_partial: bool = True):
     """Preconditioned conjugate gradients for A z = b (A symmetric), stopping at a relative
     residual rtol, after `iters`, or at a direction of non-positive curvature (then ok is
-    False unless some progress was made). Returns (z, ok, iterations)."""
+    False unless some progress was made and keep_partial; keep_partial=False: ok is False at
+    any non-positive curvature). Returns (z, ok, iterations)."""
     bnorm = jnp.sqrt(jnp.vdot(b, b))
 
     def cond(c):
@@ -322,7 +332,7 @@ def _cg(apply_a, b, precond, iters: int, rtol: float):
         beta = rz_new / jnp.where(rz == 0, 1.0, rz)
         p_new = s + beta * p
         conv = jnp.sqrt(jnp.vdot(r_new, r_new)) <= rtol * bnorm
-        ok_new = jnp.where(neg, k > 0, ok)
+        ok_new = jnp.where(neg, (k > 0) & keep_partial, ok)
         return z_new, r_new, p_new, rz_new, k + 1, ok_new, done | neg | conv
 
     s0 = precond(b)

@@ -259,12 +259,16 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
             # the approximation's own step
             token = jax.lax.cond(fresh, lambda: factor(x, mu, pairs), lambda: token)
             pre = lambda r: linsolve.solve(token, r) * fmask
-            hvp = lambda p: jax.jvp(grad_fn, (x,), (p,))[1]
+            # linearized once per step: each Krylov iteration's product skips the primal pass
+            hvp = jax.linearize(grad_fn, x)[1]
             exact = lambda p: (hvp(p * fmask) + mu * mass[:, None] * p) * fmask
-            p, ok, kry = _cg(exact, -g, pre, st.krylov_iters, eta)
-            # CG on a float32 HVP can break down into non-finite values (a fine mesh's stiff
-            # membrane): then the factorization's own step
-            # (a cond: the fallback's host solve runs only where it is taken)
+            # at a direction of negative curvature (a buckling membrane: the exact Hessian is
+            # indefinite where mu M does not cover its compressive part), the partial Krylov
+            # iterate can be a long move along a soft mode that the energy then rejects (a
+            # refactorization each): the PSD approximation's own step is taken instead. CG
+            # on a float32 HVP can also break down into non-finite values (a fine mesh's stiff
+            # membrane): the same fallback (a cond: its host solve runs only where taken)
+            p, ok, kry = _cg(exact, -g, pre, st.krylov_iters, eta, keep_partial=False)
             p = jax.lax.cond(ok & jnp.all(jnp.isfinite(p)), lambda: p, lambda: pre(-g))
             ok = jnp.all(jnp.isfinite(p))
             p = jnp.where(ok, p, 0.0)
@@ -362,7 +366,8 @@ def _argmin_jvp(problem, primals, tangents):
     fmask = free[:, None]
     rhs = jax.jvp(lambda th: _root(problem, x, th), (theta,), (theta_dot,))[1]
     grad_fn = jax.grad(lambda y: _energy(problem, y, theta))
-    matvec = lambda p: jnp.where(fmask, jax.jvp(grad_fn, (x,), (p * fmask,))[1], p)
+    hvp = jax.linearize(grad_fn, x)[1]  # once: each CG iteration's product is the tangent pass
+    matvec = lambda p: jnp.where(fmask, hvp(p * fmask), p)
     hmat = _hessian(problem, x, theta)
     if problem.settings.linear_solver == "direct":  # the approximate Hessian's LU preconditions
         nbr = _cloth_of(theta).neighbors
