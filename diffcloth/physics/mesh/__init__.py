@@ -61,11 +61,12 @@ from diffcloth.physics.mesh.solve import (
     potential,
 )
 from diffcloth.physics.mesh.surface import DisplayMesh, cloth_surface, display_mesh, texture_uv
-from diffcloth.physics.mesh.topology import ClothMesh, make_cloth, pin_mask
+from diffcloth.physics.mesh.topology import ClothMesh, active_part, make_cloth, pin_mask
 
 __all__ = [
     "FABRIC_FIELDS",
     "ClothMesh",
+    "active_part",
     "DisplayMesh",
     "EquilibriumResult",
     "Fabric",

@@ -30,7 +30,7 @@ from diffcloth.physics.mesh import energy, hessian, linsolve
 from diffcloth.physics.mesh import selfcontact_energy as sce
 from diffcloth.physics.mesh.fabric import Fabric
 from diffcloth.physics.mesh.linsolve import _block_jacobi, _cg
-from diffcloth.physics.mesh.topology import ClothMesh
+from diffcloth.physics.mesh.topology import ClothMesh, active_part
 
 __all__ = [
     "EquilibriumResult",
@@ -428,8 +428,11 @@ def equilibrium(
       call `check_equilibrium`): a solve that stopped early is not a rest shape.
     """
     x_start = jnp.asarray(x_start)
+    # the faces and hinges that move with the free vertices (self-contact: every face, as a
+    # free vertex can meet a pinned one)
+    part = cloth if self_contact is not None else _active(cloth)
     theta = {
-        "cloth": cloth,
+        "cloth": part,
         "fabric": fabric,
         "colliders": colliders,
         "gravity": jnp.asarray(gravity, x_start.dtype),
@@ -439,7 +442,24 @@ def equilibrium(
     }
     problem = _Problem("static", settings, float(settings.mu0), mc.has_colliders(colliders),
                        self_contact is not None)  # fmt: skip
-    return _argmin(problem, theta, jax.lax.stop_gradient(x_start))
+    out = _argmin(problem, theta, jax.lax.stop_gradient(x_start))
+    if part is not cloth:  # the whole cloth's energy (the part's differs by a constant)
+        offset = _energy(problem, out.x, dict(theta, cloth=cloth)) - _energy(problem, out.x, theta)
+        out = out._replace(energy=out.energy + jax.lax.stop_gradient(offset))
+    return out
+
+
+def _active(cloth: ClothMesh) -> ClothMesh:
+    """`topology.active_part` of the cloth where its pins and topology are known when traced
+    (a cloth closed over, not a traced argument) and some face is wholly pinned; else cloth."""
+    try:
+        pinned = np.asarray(cloth.pinned)
+        np.asarray(cloth.stencil), np.asarray(cloth.hinge_faces), np.asarray(cloth.face_hinge)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return cloth
+    if not pinned.any() or pinned[np.asarray(cloth.stencil)].all(axis=1).sum() == 0:
+        return cloth
+    return active_part(cloth, ~pinned)
 
 
 def check_equilibrium(result: EquilibriumResult, what: str = "equilibrium") -> EquilibriumResult:

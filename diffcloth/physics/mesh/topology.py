@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["ClothMesh", "make_cloth", "pin_mask", "PIN_RULES"]
+__all__ = ["ClothMesh", "active_part", "make_cloth", "pin_mask", "PIN_RULES"]
 
 #: named pin rules of `make_cloth(..., pinned=...)`
 PIN_RULES = ("none", "all", "boundary", "top_edge", "left_edge", "corner")
@@ -345,3 +345,42 @@ def make_cloth(mesh, *, pinned=None, warp_angle: float = 0.0, dtype=None) -> Clo
         stencil_slots=idx(slots),
         hinge_slots=idx(hinge_slots),
     )
+
+
+def active_part(cloth: ClothMesh, free) -> ClothMesh:
+    """The faces and hinges of `cloth` whose energy terms move with the free vertices, as a
+    ClothMesh over the same vertices: its energy differs from the cloth's by a constant, its
+    gradient and Hessian on the free vertices are the same. (A Cusick drape pins the 36 % of
+    the disc on the pedestal: its solve then evaluates two thirds of the faces.)
+
+    Kept: every face whose stencil holds a free vertex, the faces of every hinge next to one
+    (the curvature-jump term couples them), and the faces of the hinges those need for their
+    curvature; a hinge outside the kept set is a boundary edge of the part (its angle enters
+    only terms of pinned vertices). Needs concrete arrays (not traced).
+    Shapes: free (n,) bool.
+    """
+    free = np.asarray(free, bool)
+    stencil, hinge_faces = np.asarray(cloth.stencil), np.asarray(cloth.hinge_faces)
+    face_hinge = np.asarray(cloth.face_hinge)
+    moving = free[stencil].any(axis=1)  # faces with an energy term of their own that moves
+    jump = moving[hinge_faces].any(axis=1) if len(hinge_faces) else np.zeros(0, bool)
+    curv = moving.copy()
+    curv[hinge_faces[jump].ravel()] = True  # their curvature enters a moving jump term
+    keep_h = np.zeros(len(hinge_faces), bool)
+    keep_h[face_hinge[curv][face_hinge[curv] >= 0]] = True
+    keep_f = curv.copy()
+    keep_f[hinge_faces[keep_h].ravel()] = True
+    fmap = np.full(len(stencil), -1, np.int64)
+    fmap[keep_f] = np.arange(int(keep_f.sum()))
+    hmap = np.full(len(hinge_faces), -1, np.int64)
+    hmap[keep_h] = np.arange(int(keep_h.sum()))
+    fh = face_hinge[keep_f]
+    fh = np.where(fh >= 0, hmap[np.maximum(fh, 0)], -1)
+    per_face = ("faces", "dm_inv", "face_area", "curvature_op", "stencil", "face_rest_angle",
+                "stencil_slots")  # fmt: skip
+    per_hinge = ("hinges", "rest_angle", "hinge_slots")
+    sub = {f: getattr(cloth, f)[np.flatnonzero(keep_f)] for f in per_face}
+    sub.update({f: getattr(cloth, f)[np.flatnonzero(keep_h)] for f in per_hinge})
+    sub["face_hinge"] = jnp.asarray(fh, jnp.int32)
+    sub["hinge_faces"] = jnp.asarray(fmap[hinge_faces[keep_h]], jnp.int32)
+    return dataclasses.replace(cloth, **sub)
