@@ -246,3 +246,14 @@ def test_cli_simulate_render_fit_smoke(tmp_path):
     assert main(["render", str(path), "--out", str(tmp_path / "r"), "--format", "gif"]) == 0
     assert (tmp_path / "r" / "first.png").is_file()
     assert main(["fit", str(path), "--out", str(tmp_path / "f"), "--smoke"]) == 0
+
+
+@pytest.mark.slow
+@pytest.mark.gate  # the shipped configs' float64 equilibria must reach their tolerance (~20-40 s)
+@pytest.mark.parametrize("name", ["cusick", "tablecloth"])
+def test_cli_simulate_of_a_shipped_mesh_config_converges(tmp_path, name):
+    from diffcloth.cli import main
+
+    assert main(["simulate", f"configs/{name}.toml", "--out", str(tmp_path)]) == 0
+    x = np.load(tmp_path / "trajectory.npz")["x"]
+    assert x.shape[0] == 1 and np.isfinite(x).all()

@@ -308,19 +308,20 @@ def direct_solve(h, neighbors, rhs, free=None):
     return solve(factor(h, neighbors, free), rhs)
 
 
-def _cg(apply_a, b, precond, iters: int, rtol: float, keep_partial: bool = True):
+def _cg(apply_a, b, precond, iters: int, rtol: float, fall_back=None):
     """Preconditioned conjugate gradients for A z = b (A symmetric), stopping at a relative
     residual rtol, after `iters`, or at a direction of non-positive curvature (then ok is
-    False unless some progress was made and keep_partial; keep_partial=False: ok is False at
-    any non-positive curvature). Returns (z, ok, iterations)."""
+    False unless some progress was made). fall_back: None, or a () bool: where True, at
+    non-positive curvature the preconditioner's own step M^-1 b is returned (ok True) instead
+    of the partial iterate. Returns (z, ok, iterations)."""
     bnorm = jnp.sqrt(jnp.vdot(b, b))
 
     def cond(c):
-        z, r, p, rz, k, ok, done = c
+        z, r, p, rz, k, ok, done, _ = c
         return (~done) & (k < iters)
 
     def body(c):
-        z, r, p, rz, k, ok, done = c
+        z, r, p, rz, k, ok, done, neg_seen = c
         ap = apply_a(p)
         pap = jnp.vdot(p, ap)
         neg = pap <= 0
@@ -332,12 +333,16 @@ def _cg(apply_a, b, precond, iters: int, rtol: float, keep_partial: bool = True)
         beta = rz_new / jnp.where(rz == 0, 1.0, rz)
         p_new = s + beta * p
         conv = jnp.sqrt(jnp.vdot(r_new, r_new)) <= rtol * bnorm
-        ok_new = jnp.where(neg, (k > 0) & keep_partial, ok)
-        return z_new, r_new, p_new, rz_new, k + 1, ok_new, done | neg | conv
+        ok_new = jnp.where(neg, k > 0, ok)
+        return z_new, r_new, p_new, rz_new, k + 1, ok_new, done | neg | conv, neg_seen | neg
 
     s0 = precond(b)
-    init = (jnp.zeros_like(b), b, s0, jnp.vdot(b, s0), 0, jnp.array(True), bnorm == 0)
-    z, _, _, _, k, ok, _ = jax.lax.while_loop(cond, body, init)
+    init = (jnp.zeros_like(b), b, s0, jnp.vdot(b, s0), 0, jnp.array(True), bnorm == 0,
+            jnp.array(False))  # fmt: skip
+    z, _, _, _, k, ok, _, neg = jax.lax.while_loop(cond, body, init)
+    if fall_back is not None:
+        swap = neg & fall_back
+        z, ok = jnp.where(swap, s0, z), ok | swap
     return z, ok, k
 
 

@@ -262,13 +262,15 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
             # linearized once per step: each Krylov iteration's product skips the primal pass
             hvp = jax.linearize(grad_fn, x)[1]
             exact = lambda p: (hvp(p * fmask) + mu * mass[:, None] * p) * fmask
-            # at a direction of negative curvature (a buckling membrane: the exact Hessian is
-            # indefinite where mu M does not cover its compressive part), the partial Krylov
-            # iterate can be a long move along a soft mode that the energy then rejects (a
-            # refactorization each): the PSD approximation's own step is taken instead. CG
-            # on a float32 HVP can also break down into non-finite values (a fine mesh's stiff
-            # membrane): the same fallback (a cond: its host solve runs only where taken)
-            p, ok, kry = _cg(exact, -g, pre, st.krylov_iters, eta, keep_partial=False)
+            # at a direction of negative curvature in the damped phase (mu > 0: a buckling
+            # membrane, where mu M does not cover the exact Hessian's compressive part), the
+            # partial Krylov iterate can be a long move along a soft mode that the energy then
+            # rejects (a refactorization each): the PSD approximation's own step is taken
+            # instead. At mu = 0 (the final Newton steps) the partial iterate is kept: the PSD
+            # step alone stalled a float64 drape short of its tolerance. CG on a float32 HVP
+            # can also break down into non-finite values (a fine mesh's stiff membrane): then
+            # the PSD step too (a cond: its host solve runs only where taken)
+            p, ok, kry = _cg(exact, -g, pre, st.krylov_iters, eta, fall_back=mu > 0)
             p = jax.lax.cond(ok & jnp.all(jnp.isfinite(p)), lambda: p, lambda: pre(-g))
             ok = jnp.all(jnp.isfinite(p))
             p = jnp.where(ok, p, 0.0)
