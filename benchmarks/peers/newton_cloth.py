@@ -169,6 +169,20 @@ class NewtonStepper:
         return self.s1.particle_q.numpy().astype(np.float64)
 
 
+def start_session(script: str, out_path):
+    """x64 on, Warp quiet, the meta line (Newton, Warp, commit, CPU) emitted; returns the
+    JSON-lines file opened for appending (None: stdout only)."""
+    jax.config.update("jax_enable_x64", True)
+    import newton
+    import warp as wp
+
+    wp.config.quiet = True
+    out = open(out_path, "a") if out_path else None  # noqa: SIM115
+    emit(_meta_line(script, newton=newton.__version__, warp=wp.__version__,
+                    commit=mesh_cloth.git_commit(), cpu=mesh_cloth.cpu_model()), out)  # fmt: skip
+    return out
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="5 rounds instead of 9")
@@ -177,14 +191,7 @@ def main(argv=None):
     parser.add_argument("--dtype", choices=["float32", "float64", "both"], default="both")
     parser.add_argument("--out", help="append the JSON lines to this file")
     args = parser.parse_args(argv)
-    jax.config.update("jax_enable_x64", True)
-    import newton
-    import warp as wp
-
-    wp.config.quiet = True
-    out = open(args.out, "a") if args.out else None  # noqa: SIM115
-    emit(_meta_line("newton_cloth", newton=newton.__version__, warp=wp.__version__,
-                    commit=mesh_cloth.git_commit(), cpu=mesh_cloth.cpu_model()), out)  # fmt: skip
+    out = start_session("newton_cloth", args.out)
     rounds = 5 if args.quick else 9
     dtypes = ["float64", "float32"] if args.dtype == "both" else [args.dtype]
 

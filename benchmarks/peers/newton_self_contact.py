@@ -36,7 +36,6 @@ import mesh_cloth  # noqa: E402
 import newton_cloth as nc  # noqa: E402
 import numpy as np  # noqa: E402
 from _timing import emit  # noqa: E402
-from _timing import meta as _meta_line  # noqa: E402
 
 from diffcloth.physics import mesh as pm  # noqa: E402
 from diffcloth.physics.mesh.selfcontact import make_self_contact, min_rest_height  # noqa: E402
@@ -72,14 +71,7 @@ def main(argv=None):
     ap.add_argument("--dtype", choices=["float32", "float64"], default="float64")
     ap.add_argument("--out", help="append the JSON lines to this file")
     args = ap.parse_args(argv)
-    jax.config.update("jax_enable_x64", True)
-    import newton
-    import warp as wp
-
-    wp.config.quiet = True
-    out = open(args.out, "a") if args.out else None  # noqa: SIM115
-    emit(_meta_line("newton_self_contact", newton=newton.__version__, warp=wp.__version__,
-                    commit=mesh_cloth.git_commit(), cpu=mesh_cloth.cpu_model()), out)  # fmt: skip
+    out = nc.start_session("newton_self_contact", args.out)
     dtype = jnp.dtype(args.dtype)
     cloth, _ = mesh_cloth.hanging_scene(dtype, args.edge)
     fabric = pm.make_fabric(mesh_cloth.PRESET, stretch=500.0, shear=250.0, poisson=0.0,
