@@ -47,6 +47,7 @@ from _timing import emit, timed  # noqa: E402
 from _timing import meta as _meta_line  # noqa: E402
 
 from diffcloth.physics import mesh as pm  # noqa: E402
+from diffcloth.physics.mesh import linsolve  # noqa: E402
 from diffcloth.physics.state import ClothState  # noqa: E402
 
 GRAVITY = (0.0, -9.81, 0.0)
@@ -97,6 +98,7 @@ def common(dtype: str, n: int) -> dict:
         load_1min=round(os.getloadavg()[0], 2),
         dtype=dtype,
         n_vertices=n,
+        sparse_solver=linsolve.backend(),
     )
 
 

@@ -7,6 +7,8 @@ evicted on varying threads leaked GBs per drape solve)."""
 from __future__ import annotations
 
 import os
+import platform
+import sys
 import threading
 
 import jax
@@ -14,7 +16,21 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffcloth.physics.mesh import linsolve
+from diffcloth.physics.mesh import linsolve, pardiso
+
+#: x86_64 Linux installs MKL with the test extra: there a missing PARDISO is a failure
+_MKL_EXPECTED = sys.platform.startswith("linux") and platform.machine() == "x86_64"
+
+
+@pytest.fixture(autouse=True, params=["superlu", "pardiso"])
+def backend(request, monkeypatch):
+    """Every test here runs with each host factorization: SciPy SuperLU and MKL PARDISO."""
+    if request.param == "pardiso" and not pardiso.available():
+        if _MKL_EXPECTED:
+            pytest.fail("MKL's PARDISO does not load: pip install -e '.[test]' installs mkl")
+        pytest.skip("MKL is not installed for this platform (the fast extra is x86_64 only)")
+    monkeypatch.setenv("DIFFCLOTH_SPARSE_SOLVER", request.param)
+    return request.param
 
 
 def _grid_system(side: int, seed: int = 0):

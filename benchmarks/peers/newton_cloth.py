@@ -179,7 +179,8 @@ def start_session(script: str, out_path):
     wp.config.quiet = True
     out = open(out_path, "a") if out_path else None  # noqa: SIM115
     emit(_meta_line(script, newton=newton.__version__, warp=wp.__version__,
-                    commit=mesh_cloth.git_commit(), cpu=mesh_cloth.cpu_model()), out)  # fmt: skip
+                    commit=mesh_cloth.git_commit(), cpu=mesh_cloth.cpu_model(),
+                    sparse_solver=mesh_cloth.linsolve.backend()), out)  # fmt: skip
     return out
 
 
