@@ -216,7 +216,8 @@ def _pardiso_factor(pat: _Pattern | None, a, dtype):
 
 
 def backend() -> str:
-    """The host factorization the next `factor` uses: "pardiso" or "superlu"."""
+    """The host factorization the next `factor` uses: "pardiso" or "superlu".
+    Shapes: none (reads the environment and whether MKL loads)."""
     return "pardiso" if _use_pardiso() else "superlu"
 
 

@@ -78,7 +78,8 @@ def _load():
 
 
 def available() -> bool:
-    """True where MKL's PARDISO loads (and this process is the one that loaded it)."""
+    """True where MKL's PARDISO loads (and this process is the one that loaded it).
+    Shapes: none."""
     if os.environ.get("DIFFCLOTH_SPARSE_SOLVER", "auto").lower() == "superlu":
         return False
     fn = _load()
