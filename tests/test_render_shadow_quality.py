@@ -53,7 +53,8 @@ def test_fit_preset_sizes_and_validation():
     ):
         st = shadow_settings("fit", 256, image)
         assert (st.map_size, st.sky_size, st.taps, st.sky_taps) == (light, sky, 1, 1)
-        assert st.analytic_spheres
+        assert st.analytic_spheres and st.light_per_vertex
+    assert not full.light_per_vertex
     with pytest.raises(ValueError, match="shadow_quality must be one of"):
         shadow_settings("fast", 256, 64)
 
@@ -161,3 +162,35 @@ def test_analytic_sky_under_a_cloth_square_matches_the_form_factor():
     assert a[1] > 0.998 and abs(a[2] - 0.5) < 0.01
     top = sky_visibility(sky, pos, jnp.broadcast_to(jnp.array([0.0, 1.0, 0.0]), pos.shape))
     np.testing.assert_allclose(top, 1.0)
+
+
+def test_fit_preset_looks_the_cloth_light_up_per_vertex_close_to_per_pixel():
+    """The "fit" preset's cloth visibility is looked up at the vertices and interpolated by the
+    rasterizer: on a tessellated sheet half in a sphere's shadow it stays within a few per cent
+    of the per-pixel lookup on average (it differs only across the shadow's edge), and both see
+    the shadow."""
+    from diffcloth.render import lights as Lm
+    from diffcloth.render.camera import make_camera
+    from diffcloth.render.frame import surface_gbuffer
+    from diffcloth.render.shadows import shadow_maps
+    from diffcloth.surface import tessellate
+
+    x, z = np.meshgrid(np.linspace(-0.5, 0.5, 9), np.linspace(-0.5, 0.5, 9))
+    net = jnp.asarray(np.stack([x, 0.02 * np.sin(4 * x), z], -1), jnp.float32)
+    surf = tessellate(net, 4)
+    lights = Lm.make_lights(directional=[((0.2, 1.0, 0.1), (1.0, 1.0, 1.0), 2.0)],
+                            shadows=True, dtype=jnp.float32)  # fmt: skip
+    sph = make_sphere([(0.15, 0.3, 0.0)], [0.15], dtype=jnp.float32)
+    cam = make_camera((0.0, 1.5, 0.8), (0.0, 0.0, 0.0), (0, 1, 0), width=64, height=64)
+    app = Lm.make_appearance(dtype=jnp.float32)
+    vis = {}
+    for per_vertex in (False, True):
+        maps = shadow_maps(lights, mesh=(surf.positions, surf.faces), spheres=sph, size=32,
+                           taps=1, fast=True, per_vertex=per_vertex)  # fmt: skip
+        gb, _, _ = surface_gbuffer(surf, cam, lights, app, shadows=maps)
+        m = np.asarray(gb.mask) > 0.5
+        vis[per_vertex] = np.asarray(gb.visibility)[..., 0][m]
+    shaded = vis[False] < 0.5
+    assert 0.05 < shaded.mean() < 0.6, shaded.mean()  # the shadow is on the sheet
+    assert np.mean(np.abs(vis[True] - vis[False])) < 0.03
+    assert np.mean(vis[True][shaded]) < 0.3  # the umbra stays dark per vertex

@@ -219,7 +219,8 @@ def surface_gbuffer(
     """Rasterize a Surface into the shader's per-pixel inputs.
 
     shadows: optional `shadows.shadow_maps` output: fills `visibility` per pixel (and lights the
-    Gouraud vertices with per-vertex visibility). sky: optional `sky.sky_maps` output: fills
+    Gouraud vertices with per-vertex visibility); with `shadows.per_vertex` (and no boxes) the
+    vertices' visibility, interpolated. sky: optional `sky.sky_maps` output: fills
     `ambient_visibility` (ambient occlusion).
 
     Returns:
@@ -250,6 +251,11 @@ def surface_gbuffer(
     grid = getattr(surface, "grid_shape", None)
     if (vsky := skylib.vertex_sky_attribute(sky, pos, nrm, grid)) is not None:
         attrs["sky"] = vsky  # ambient occlusion per vertex, both sides, interpolated
+    vvis = None
+    if shadows is not None and (shadows.per_vertex or shading == "gouraud"):
+        vvis = shadow_visibility(shadows, pos, nrm)  # (n, nl), the same for both sides
+    if vvis is not None and shadows.per_vertex and boxes is None:
+        attrs["light_visibility"] = vvis  # interpolated (box faces: per pixel, below)
     if shading == "gouraud":
         # per-vertex lighting, for both sides: from the eye point (perspective) or the common
         # direction of the parallel rays (orthographic, oblique, axonometric)
@@ -257,7 +263,6 @@ def surface_gbuffer(
             eye4 = jnp.concatenate([eye_position(camera), jnp.ones(1, pos.dtype)])
         else:
             eye4 = jnp.concatenate([eye_rays[0, 0], jnp.zeros(1, pos.dtype)])
-        vvis = shadow_visibility(shadows, pos, nrm)
         av, av_back = sky_visibility(sky, pos, nrm), sky_visibility(sky, pos, -nrm)
         attrs["color"] = light_vertices(pos, nrm, eye4, lights, appearance, vvis, av)
         if two_sided:
@@ -299,7 +304,9 @@ def surface_gbuffer(
         mask=mask,
         face_normal=face_normal,
         color=color,
-        visibility=shadow_visibility(shadows, a["position"], normal),
+        visibility=a["light_visibility"]
+        if "light_visibility" in a
+        else shadow_visibility(shadows, a["position"], normal),
         ambient_visibility=skylib.pixel_sky_visibility(sky, a, a["position"], normal, back),
     )
     return gb, buf, eye_rays

@@ -11,7 +11,8 @@
   least 32 and at most `shadow_map_size` texels) and looked up with one bilinear tap (a penumbra
   of about two pixels: near the sharp shadow of a path tracer's directional light, box-filtered
   by the pixels; on the ray-cast spheres and planes once per 2 x 2 pixels, upsampled
-  bilinearly: `shadows.layer_shadow_visibility`), the occluder
+  bilinearly: `shadows.layer_shadow_visibility`; on the cloth at its vertices, interpolated
+  by the rasterizer: `ShadowMaps.per_vertex`), the occluder
   rasterized into it decimated to triangles about two texels wide (`decimated_grid`), the sphere
   discs' angles from polynomial arctangents (`_math.fast_atan2`). Ambient occlusion uses no maps
   at all: closed forms (`render.sky_discs`: the cloth as discs at the vertices of a grid of at
@@ -58,6 +59,7 @@ class ShadowSettings:
     decimate: bool = False
     sky_analytic: bool = False
     layer_stride: int = 1
+    light_per_vertex: bool = False
 
 
 def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> ShadowSettings:
@@ -82,8 +84,9 @@ def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> Shad
         sky = max(FIT_SKY_MIN, side // 4)
         stride = max(FIT_LAYER_STRIDE, side // FIT_LAYER_GRID)
         return ShadowSettings(
-            size, 1, sky, 1, True, True, True, stride, True, True, FIT_SHADOW_STRIDE
-        )
+            size, 1, sky, 1, True, True, True, stride, True, True, FIT_SHADOW_STRIDE,
+            light_per_vertex=True,
+        )  # fmt: skip
     raise ValueError(f"shadow_quality must be one of {SHADOW_QUALITIES}, got {quality!r}")
 
 
@@ -128,6 +131,7 @@ def frame_maps(
         taps=st.taps,
         fast=st.fast,
         layer_stride=st.layer_stride,
+        per_vertex=st.light_per_vertex,
     )
     sky = frame_sky_maps(
         coarse(surface, 2 * DISC_GRID if st.sky_analytic else st.sky_size),

@@ -83,6 +83,10 @@ class ShadowMaps:
         XLA's atan2 (a scalar library call: most of the lookup's cost on the CPU).
       layer_stride: static; f > 1: the ray-cast layers (spheres, planes) look up their
         visibility once per f x f pixel block, upsampled bilinearly (`layer_shadow_visibility`).
+      per_vertex: static; the cloth's visibility is looked up at its vertices and interpolated
+        by the rasterizer (`frame.surface_gbuffer`) instead of at every pixel (the "fit"
+        preset: the lookup is independent of the normal's sign, so one value serves both
+        sides).
     """
 
     lights: Lights
@@ -98,6 +102,7 @@ class ShadowMaps:
     taps: int = dataclasses.field(default=4, metadata={"static": True})
     fast: bool = dataclasses.field(default=False, metadata={"static": True})
     layer_stride: int = dataclasses.field(default=1, metadata={"static": True})
+    per_vertex: bool = dataclasses.field(default=False, metadata={"static": True})
 
 
 def _smoothstep(x):
@@ -163,6 +168,7 @@ def shadow_maps(
     taps: int = 4,
     fast: bool = False,
     layer_stride: int = 1,
+    per_vertex: bool = False,
 ) -> ShadowMaps | None:
     """Build the per-frame shadow data of every shadow-casting light.
 
@@ -176,6 +182,7 @@ def shadow_maps(
       taps: static filter taps per axis of every lookup of these maps (see `shadow_visibility`).
       fast: static; polynomial arctangents in the sphere occlusion (`ShadowMaps.fast`).
       layer_stride: static; `ShadowMaps.layer_stride`.
+      per_vertex: static; `ShadowMaps.per_vertex`.
     Returns:
       ShadowMaps, or None when no light casts shadows.
     """
@@ -194,7 +201,7 @@ def shadow_maps(
     casting = tuple(i for i, f in enumerate(lights.shadows) if f)
     n_dir = sum(1 for i in casting if i < nd)
     sph = spheres.batched() if spheres is not None else None
-    settings = (casting, n_dir, int(size), int(taps), fast, int(layer_stride))
+    settings = (casting, n_dir, int(size), int(taps), fast, int(layer_stride), bool(per_vertex))
     if mesh is None or mesh[1].shape[0] == 0:
         return ShadowMaps(lights, sph, None, None, None, None, None, *settings)
     positions, faces = mesh[0], jnp.asarray(mesh[1]).astype(jnp.int32)
