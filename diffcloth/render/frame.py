@@ -218,10 +218,9 @@ def surface_gbuffer(
 ):
     """Rasterize a Surface into the shader's per-pixel inputs.
 
-    shadows: optional `shadows.shadow_maps` output: fills `visibility` per pixel (and lights the
-    Gouraud vertices with per-vertex visibility); with `shadows.per_vertex` (and no boxes) the
-    vertices' visibility, interpolated. sky: optional `sky.sky_maps` output: fills
-    `ambient_visibility` (ambient occlusion).
+    shadows: optional `shadows.shadow_maps` output: fills `visibility` per pixel (per vertex,
+    interpolated, with `shadows.per_vertex` and no boxes; the Gouraud vertices' lighting too).
+    sky: optional `sky.sky_maps` output: fills `ambient_visibility` (ambient occlusion).
 
     Returns:
       (ShadingBuffer, raster GBuffer (ids, depth, crossings for `antialias`), eye vectors (H, W, 3)
@@ -251,11 +250,10 @@ def surface_gbuffer(
     grid = getattr(surface, "grid_shape", None)
     if (vsky := skylib.vertex_sky_attribute(sky, pos, nrm, grid)) is not None:
         attrs["sky"] = vsky  # ambient occlusion per vertex, both sides, interpolated
-    vvis = None
-    if shadows is not None and (shadows.per_vertex or shading == "gouraud"):
-        vvis = shadow_visibility(shadows, pos, nrm)  # (n, nl), the same for both sides
-    if vvis is not None and shadows.per_vertex and boxes is None:
-        attrs["light_visibility"] = vvis  # interpolated (box faces: per pixel, below)
+    per_vertex = shadows is not None and shadows.per_vertex and boxes is None  # boxes: per pixel
+    vvis = shadow_visibility(shadows, pos, nrm) if per_vertex or shading == "gouraud" else None
+    if per_vertex:  # (n, nl), the same for both sides, interpolated by the rasterizer
+        attrs["light_visibility"] = vvis
     if shading == "gouraud":
         # per-vertex lighting, for both sides: from the eye point (perspective) or the common
         # direction of the parallel rays (orthographic, oblique, axonometric)
@@ -295,6 +293,7 @@ def surface_gbuffer(
             face_normal = jnp.where(back, -face_normal, face_normal)
         if color is not None:
             color = jnp.where(back, a["color_back"], color)
+    vis = a["light_visibility"] if per_vertex else shadow_visibility(shadows, a["position"], normal)
     gb = ShadingBuffer(
         position=a["position"],
         normal=normal,
@@ -304,9 +303,7 @@ def surface_gbuffer(
         mask=mask,
         face_normal=face_normal,
         color=color,
-        visibility=a["light_visibility"]
-        if "light_visibility" in a
-        else shadow_visibility(shadows, a["position"], normal),
+        visibility=vis,
         ambient_visibility=skylib.pixel_sky_visibility(sky, a, a["position"], normal, back),
     )
     return gb, buf, eye_rays
