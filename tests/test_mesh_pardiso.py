@@ -5,24 +5,18 @@ agrees with SuperLU's."""
 
 from __future__ import annotations
 
-import platform
-import sys
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_mesh_linsolve import _grid_system
+from test_mesh_linsolve import _grid_system, require_pardiso
 
-from diffcloth.physics.mesh import linsolve, pardiso
+from diffcloth.physics.mesh import linsolve
 
 
 @pytest.fixture
 def pardiso_on(monkeypatch):
-    if not pardiso.available():
-        if sys.platform.startswith("linux") and platform.machine() == "x86_64":
-            pytest.fail("MKL's PARDISO does not load: pip install -e '.[test]' installs mkl")
-        pytest.skip("MKL is not installed for this platform (the fast extra is x86_64 only)")
+    require_pardiso()
     monkeypatch.setenv("DIFFCLOTH_SPARSE_SOLVER", "pardiso")
 
 
@@ -54,8 +48,7 @@ def test_an_equilibrium_is_the_same_with_either_factorization(monkeypatch):
     """The factorization only preconditions the Newton-Krylov steps and the adjoint: a float64
     hanging sheet's equilibrium and its gradient agree between PARDISO and SuperLU to the
     solver's tolerance."""
-    if not pardiso.available():
-        pytest.skip("MKL is not installed for this platform (the fast extra is x86_64 only)")
+    require_pardiso()
     from diffcloth.physics import mesh as pm
 
     cloth = pm.make_cloth(pm.rectangle(0.2, 0.2, 0.02), pinned="top_edge", dtype=jnp.float64)

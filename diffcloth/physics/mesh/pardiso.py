@@ -78,10 +78,8 @@ def _load():
 
 
 def available() -> bool:
-    """True where MKL's PARDISO loads (and this process is the one that loaded it).
-    Shapes: none."""
-    if os.environ.get("DIFFCLOTH_SPARSE_SOLVER", "auto").lower() == "superlu":
-        return False
+    """True where MKL's PARDISO loads (and this process is the one that loaded it); whether it
+    is used is `linsolve`'s choice ($DIFFCLOTH_SPARSE_SOLVER). Shapes: none."""
     fn = _load()
     return bool(fn) and _LIB[1] == os.getpid()
 
@@ -127,7 +125,6 @@ class Analysis:
         ip[9] = 6 if single else 8  # pivot perturbation 10^-k
         ip[10] = 0  # no scaling
         ip[12] = 0  # no weighted matching
-        ip[17] = -1  # report the factor's nonzeros
         ip[20] = 1  # Bunch-Kaufman pivoting
         ip[23] = 0  # the classic (not two-level) factorization: small systems
         ip[27] = 1 if single else 0
@@ -142,11 +139,6 @@ class Analysis:
                          self._iparm, self.dtype)  # fmt: skip
         if err:
             raise RuntimeError(f"PARDISO analysis failed: {_ERRORS.get(err, err)}")
-
-    @property
-    def factor_nnz(self) -> int:
-        """Nonzeros in the factor (as PARDISO reports them after the analysis)."""
-        return int(self._iparm[17])
 
     def _call(self, phase: int, mnum: int, data: np.ndarray, rhs: np.ndarray,
               out: np.ndarray | None = None) -> int:  # fmt: skip
