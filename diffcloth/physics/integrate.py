@@ -32,6 +32,7 @@ from diffcloth.physics.forces import (
     to_planar,
     total_forces_fn,
 )
+from diffcloth.physics.grid_contact import planar_hooks
 from diffcloth.physics.material import Material
 from diffcloth.physics.net import Net
 from diffcloth.physics.state import ClothState, SimSettings
@@ -264,6 +265,13 @@ def step_with_contacts(
             )
         return x1, v1, dsi, dpi
 
+    # self-contact (grid_contact): a static switch, off leaves the traced program unchanged
+    sc = getattr(sim, "self_contact", None)
+    if sc is not None:
+        g = jnp.sqrt(jnp.sum(sim.gravity**2)) if sim.integrator == "implicit" else 0.0
+        contact = planar_hooks(net, sc, material, mass, free, h, g)
+    else:
+        contact = None
     zeros_si = jnp.zeros((n_s, 3), dtype)
     zeros_pi = jnp.zeros((n_p, 3), dtype)
     if sim.integrator == "symplectic":
@@ -281,7 +289,7 @@ def step_with_contacts(
         def substep(carry, s):
             x, v, vk, si, pi = carry
             t = s.astype(dtype) * h
-            x1, v1, dsi, dpi = constrain_remat(x, x + h * v, v, t, vk)
+            x1, v1, dsi, dpi = drift(x, v, t, vk)
             first = s == 0
             x1 = jnp.where(first, x, x1)
             v1 = jnp.where(first, v, v1)
@@ -299,18 +307,35 @@ def step_with_contacts(
         # are cheap to recompute). Autodiff forces (another force model, `autodiff_forces`) would
         # keep every intermediate of the force loop, so their whole substeps stay checkpointed.
         constrain_remat = jax.checkpoint(constrain, prevent_cse=False)
+
+        def drift(x, v, t, vk):  # x += h v, pins, colliders (and self-contact, when on)
+            if contact is None:
+                return constrain_remat(x, x + h * v, v, t, vk)
+            p = contact[0](x, v)
+            v = contact[1](p, x, v)
+            x1, v1, dsi, dpi = constrain_remat(x, x + h * v, v, t, vk)
+            return (*contact[2](p, x, x1, v1), dsi, dpi)
+
         if not hand_vjp(material):
             substep = jax.checkpoint(substep, prevent_cse=False)
         (x, v, vk, si, pi), _ = jax.lax.scan(substep, init, jnp.arange(num))
-        x, v, dsi, dpi = constrain_remat(x, x + h * v, v, num * h, vk)
+        if contact is None:
+            x, v, dsi, dpi = constrain_remat(x, x + h * v, v, num * h, vk)
+        else:
+            x, v, dsi, dpi = drift(x, v, num * h, vk)
         si, pi = si + dsi, pi + dpi
     elif sim.integrator == "implicit":
 
         def substep(carry, s):
             x, v, si, pi = carry
             t = (s + 1).astype(dtype) * h
+            if contact is not None:
+                p = contact[0](x, v)
+                v = contact[1](p, x, v)
             x1, v1 = _implicit_substep(net, sim, material, x, v, mass, free, h, pin_v)
             x1, v1, dsi, dpi = constrain(x, x1, v1, t, v)
+            if contact is not None:
+                x1, v1 = contact[2](p, x, x1, v1)
             return (x1, v1, si + dsi, pi + dpi), None
 
         init = (x0, to_planar(state.v), zeros_si, zeros_pi)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -57,6 +58,9 @@ class SimSettings:
         sensitivities, cheap for a few scalar parameters), "reverse" replays it backwards
         (checkpointed), "reverse" is the default; "auto" picks forward when at most 2 scalars are
         differentiated and their Jacobian fits 256 MB, else reverse.
+      self_contact: None (off, the default) or a `mesh.selfcontact.SelfContact` from
+        `grid_contact.make_grid_self_contact`: self-contact between the net's layers
+        (`physics.grid_contact`; a pytree child, so None traces the same program as before).
     """
 
     dt: jax.Array
@@ -70,6 +74,7 @@ class SimSettings:
     cg_tol: float = dataclasses.field(default=1e-5, metadata={"static": True})
     friction_rule: str = dataclasses.field(default="auto", metadata={"static": True})
     gradient: str = dataclasses.field(default="reverse", metadata={"static": True})
+    self_contact: Any = None
 
     @property
     def h(self):
