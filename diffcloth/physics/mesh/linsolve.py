@@ -286,7 +286,8 @@ def _factor_now(h: np.ndarray, nbr: np.ndarray, free: np.ndarray, *couplings) ->
     lu = None
     if pat.size and np.all(np.isfinite(data)):
         a = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.size, pat.size))
-        coupled = bool(couplings) and np.all(np.isfinite(couplings[2]))
+        # (no pair in contact: the plain pattern, its analysis kept)
+        coupled = bool(couplings) and np.all(np.isfinite(couplings[2])) and np.any(couplings[2])
         if coupled:
             a, dofs = _coupled(pat, a, *couplings)
         a = a.astype(dtype)

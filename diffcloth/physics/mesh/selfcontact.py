@@ -176,6 +176,14 @@ def weights(q, kind):
     return jnp.where((kind == 0)[:, None], wvt, wee)
 
 
+def _gap_of(x, idx, k: int):
+    """(P, 3) gap vectors of pairs idx (P, 4) all of the static kind k (one closest-point
+    computation per row, not both)."""
+    q = x[idx]
+    w = jax.vmap(point_triangle if k == 0 else edge_edge)(q[:, 0], q[:, 1], q[:, 2], q[:, 3])
+    return jnp.einsum("pk,pki->pi", w, q)
+
+
 # ---------------------------------------------------------------------------------------------
 # broad phase
 
@@ -262,7 +270,7 @@ def find_pairs(cloth, sc: SelfContact, x, radius, motion=None) -> Pairs:
     out = []
     for idx, good, k, size in ((idx_vt, ok, 0, cap * n), (idx_ee, oke, 1, cap * ne)):
         kind = jnp.full(idx.shape[:1], k, jnp.int32)
-        d = safe_norm(gap(x, idx, kind))
+        d = safe_norm(_gap_of(x, idx, k))
         m4 = motion[idx]
         reach = (m4[:, 0] + jnp.max(m4[:, 1:], axis=1) if k == 0
                  else jnp.max(m4[:, :2], axis=1) + jnp.max(m4[:, 2:], axis=1))  # fmt: skip

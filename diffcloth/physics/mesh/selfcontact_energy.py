@@ -38,15 +38,19 @@ from diffcloth.physics.mesh.selfcontact import (
 
 __all__ = [
     "FrictionFrame",
+    "bucketed",
     "barrier",
     "barrier_blocks",
     "barrier_cores",
     "barrier_energy",
+    "compact",
     "friction_energy",
     "friction_blocks",
     "friction_cores",
     "friction_frame",
     "mollifier",
+    "take",
+    "within",
     "find_pairs",
     "step_pairs",
     "step_bound",
@@ -92,15 +96,77 @@ def mollifier(cloth, x, pairs: Pairs):
     return jnp.where(~ee | (t >= 1.0), 1.0, t * (2.0 - t))
 
 
+def bucketed(mask, fn):
+    """fn(rows (s,) int, live (s,) bool) on the rows where mask (P,) holds, compacted into the
+    smallest static size s of P/64, P/8 and P (at least 256) that holds them all: a
+    `lax.switch`, so only that size is computed (the pair arrays are padded to the broad
+    phase's capacity; the pairs in contact are usually a small part of it). fn's outputs must
+    have the same shapes for every s.
+    Shapes: mask (P,) -> fn's outputs."""
+    big = mask.shape[0]
+    sizes = sorted({min(big, max(256, big // 8**k)) for k in range(3)})
+    count = jnp.sum(mask.astype(jnp.int32))
+
+    def branch(s):
+        def run():
+            (rows,) = jnp.nonzero(mask, size=s, fill_value=0)
+            return fn(rows, jnp.arange(s) < count)
+
+        return run
+
+    if len(sizes) == 1:
+        return branch(sizes[0])()
+    i = jnp.searchsorted(jnp.asarray(sizes[:-1], count.dtype), count)  # the first size >= count
+    return jax.lax.switch(i, [branch(s) for s in sizes])
+
+
+def take(pairs: Pairs, rows, live) -> Pairs:
+    """The pairs' rows (s,), valid where live (s,) and valid before.
+    Shapes: pairs with P rows, rows (s,), live (s,) -> Pairs with s rows."""
+    return Pairs(pairs.idx[rows], pairs.kind[rows], pairs.valid[rows] & live, pairs.overflow,
+                 pairs.count)  # fmt: skip
+
+
+def _lp(x, p, pairs: Pairs):
+    """(P,) bound on how far the step p (n, 3) moves each pair's distance (the pair's relative
+    motion: additive CCD's lp)."""
+    dq = p[pairs.idx]
+    rel = safe_norm(dq - jnp.mean(dq, axis=1, keepdims=True))  # (P, 4)
+    vt = rel[:, 0] + jnp.max(rel[:, 1:], axis=1)
+    ee = jnp.max(rel[:, :2], axis=1) + jnp.max(rel[:, 2:], axis=1)
+    return jnp.where(pairs.kind == 0, vt, ee)
+
+
+def within(x, pairs: Pairs, radius, p=None) -> Pairs:
+    """The valid pairs closer than radius (m) at x (n, 3); with a step p (n, 3), those that
+    x + a p, a in [0, 1], may bring closer than radius (distance at x less the pair's relative
+    motion bound). The rows stay where they are (the others turn invalid). No gradient.
+    Shapes: x (n, 3), p (n, 3) -> Pairs with the rows of pairs."""
+    x = jax.lax.stop_gradient(x)
+
+    def on(rows, live):
+        sub = take(pairs, rows, live)
+        d = safe_norm(gap(x, sub.idx, sub.kind))
+        if p is not None:
+            d = d - _lp(x, jax.lax.stop_gradient(p), sub)
+        return jnp.zeros(pairs.valid.shape, bool).at[rows].max(sub.valid & (d < radius))
+
+    return pairs._replace(valid=bucketed(pairs.valid, on))
+
+
 def barrier_energy(cloth, sc: SelfContact, x, pairs: Pairs):
     """Total barrier energy in J at x (n, 3) over the valid pairs (edge-edge pairs mollified);
     NaN if the broad phase overflowed (a solve then fails rather than miss a contact).
     Shapes: x (n, 3) -> ()."""
-    # padding rows may repeat an excluded (incident, d = 0) pair: keep them off the barrier
-    d = jnp.where(pairs.valid, safe_norm(gap(x, pairs.idx, pairs.kind)), sc.thickness)
-    area = _pair_area(cloth, pairs) * mollifier(cloth, x, pairs)
-    e = jnp.where(pairs.valid, area * barrier(d, sc.thickness), 0.0)
-    return jnp.where(pairs.overflow, jnp.nan, sc.stiffness * jnp.sum(e))
+
+    def on(rows, live):
+        sub = take(pairs, rows, live)
+        # padding rows may repeat an excluded (incident, d = 0) pair: keep them off the barrier
+        d = jnp.where(sub.valid, safe_norm(gap(x, sub.idx, sub.kind)), sc.thickness)
+        area = _pair_area(cloth, sub) * mollifier(cloth, x, sub)
+        return jnp.sum(jnp.where(sub.valid, area * barrier(d, sc.thickness), 0.0))
+
+    return jnp.where(pairs.overflow, jnp.nan, sc.stiffness * bucketed(pairs.valid, on))
 
 
 def barrier_cores(cloth, sc: SelfContact, x, pairs: Pairs):
@@ -130,31 +196,37 @@ def barrier_blocks(cloth, sc: SelfContact, x, pairs: Pairs):
     """(n, 3, 3) PSD diagonal blocks of the barrier's Hessian (Gauss-Newton: kappa A b''(d)
     w_k^2 u u^T on each vertex k of a pair, u the unit gap direction; `barrier_cores`).
     Shapes: x (n, 3) -> (n, 3, 3)."""
-    return _diagonal(*barrier_cores(cloth, sc, x, pairs), x.shape[0])
+    n = x.shape[0]
+    return bucketed(pairs.valid, lambda rows, live: _diagonal(
+        *barrier_cores(cloth, sc, x, take(pairs, rows, live)), n))  # fmt: skip
 
 
 def step_bound(x, p, pairs: Pairs, iters: int = 16):
     """The longest fraction alpha in [0, 1] of the step p (n, 3) that keeps every pair's
     distance above a tenth of its start (additive CCD, Li et al. 2021: conservative advancement
-    by the pair's relative-motion bound, `iters` rounds).
+    by the pair's relative-motion bound, `iters` rounds at most: they stop once every pair is
+    done).
     Shapes: x, p (n, 3) -> () in [0, 1]."""
     x, p = jax.lax.stop_gradient(x), jax.lax.stop_gradient(p)
+    return bucketed(pairs.valid, lambda rows, live: _ccd(x, p, take(pairs, rows, live), iters))
+
+
+def _ccd(x, p, pairs: Pairs, iters):
     q, dq = x[pairs.idx], p[pairs.idx]  # (P, 4, 3)
-    rel = safe_norm(dq - jnp.mean(dq, axis=1, keepdims=True))  # (P, 4)
-    vt = rel[:, 0] + jnp.max(rel[:, 1:], axis=1)
-    ee = jnp.max(rel[:, :2], axis=1) + jnp.max(rel[:, 2:], axis=1)
-    lp = jnp.where(pairs.kind == 0, vt, ee)
+    lp = _lp(x, p, pairs)
     dist = lambda t: safe_norm(gap_at(q + t[:, None, None] * dq, pairs.kind))
     zero = jnp.zeros(q.shape[:1], x.dtype)
     floor = 0.1 * dist(zero)
 
-    def body(_, c):
-        t, done = c
+    def body(c):
+        k, t, done = c
         t_new = t + 0.9 * (dist(t) - floor) / jnp.maximum(lp, 1e-30)
         fin = t_new >= 1.0
-        return jnp.where(done, t, jnp.where(fin, 1.0, t_new)), done | fin
+        return k + 1, jnp.where(done, t, jnp.where(fin, 1.0, t_new)), done | fin
 
-    t, _ = jax.lax.fori_loop(0, iters, body, (zero, lp <= 0))
+    # the rounds after every pair is done change nothing: stop there
+    cond = lambda c: (c[0] < iters) & ~jnp.all(c[2])
+    _, t, _ = jax.lax.while_loop(cond, body, (0, zero, (lp <= 0) | ~pairs.valid))
     t = jnp.where(lp <= 0, 1.0, t)
     return jnp.min(jnp.where(pairs.valid, jnp.clip(t, 0.0, 1.0), 1.0), initial=1.0)
 
@@ -175,11 +247,12 @@ class FrictionFrame(NamedTuple):
     overflow: jax.Array
 
 
-def friction_frame(cloth, sc: SelfContact, x_prev) -> FrictionFrame:
-    """The pairs in contact at x_prev (n, 3) and their normal forces (no gradient).
+def friction_frame(cloth, sc: SelfContact, x_prev, pairs: Pairs | None = None) -> FrictionFrame:
+    """The pairs in contact at x_prev (n, 3) and their normal forces (no gradient); pairs: a
+    superset of those within the thickness at x_prev (default: found here).
     Shapes: x_prev (n, 3) -> FrictionFrame with P pairs."""
     x_prev = jax.lax.stop_gradient(x_prev)
-    pairs = find_pairs(cloth, sc, x_prev, sc.thickness)
+    pairs = find_pairs(cloth, sc, x_prev, sc.thickness) if pairs is None else pairs
     q = x_prev[pairs.idx]
     w = weights(q, pairs.kind)
     g = jnp.einsum("pk,pki->pi", w, q)
@@ -195,11 +268,21 @@ def friction_energy(frame: FrictionFrame, x, x_prev, mu, eps):
     """Lagged friction potential in J (module docstring). mu: () Coulomb coefficient; eps: ()
     m, the slip below which friction is smoothed.
     Shapes: x, x_prev (n, 3) -> ()."""
-    u = jnp.einsum("pk,pki->pi", frame.w, (x - x_prev)[frame.idx])
-    ut = u - jnp.sum(u * frame.normal, axis=-1, keepdims=True) * frame.normal
-    slide = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps) - eps
-    e = mu * jnp.sum(frame.lam * slide)
+
+    def on(rows, live):
+        fr = _take_frame(frame, rows, live)
+        u = jnp.einsum("pk,pki->pi", fr.w, (x - x_prev)[fr.idx])
+        ut = u - jnp.sum(u * fr.normal, axis=-1, keepdims=True) * fr.normal
+        slide = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps) - eps
+        return jnp.sum(fr.lam * slide)
+
+    e = mu * bucketed(frame.lam != 0, on)
     return jnp.where(frame.overflow, jnp.nan, e)
+
+
+def _take_frame(frame: FrictionFrame, rows, live) -> FrictionFrame:
+    lam = jnp.where(live, frame.lam[rows], 0.0)
+    return FrictionFrame(frame.idx[rows], frame.w[rows], frame.normal[rows], lam, frame.overflow)
 
 
 def friction_cores(frame: FrictionFrame, x, x_prev, mu, eps):
@@ -222,7 +305,22 @@ def friction_blocks(frame: FrictionFrame, x, x_prev, mu, eps):
     """(n, 3, 3) PSD diagonal blocks of the lagged friction's Hessian (`friction_cores`), for
     the preconditioner.
     Shapes: x, x_prev (n, 3) -> (n, 3, 3)."""
-    return _diagonal(*friction_cores(frame, x, x_prev, mu, eps), x.shape[0])
+    n = x.shape[0]
+    return bucketed(frame.lam != 0, lambda rows, live: _diagonal(
+        *friction_cores(_take_frame(frame, rows, live), x, x_prev, mu, eps), n))  # fmt: skip
+
+
+def compact(pairs: Pairs, frame: FrictionFrame | None, size: int):
+    """The first `size` valid pairs and live friction rows (the preconditioner's couplings: the
+    rest, if any, are left out of it, which keeps it PSD).
+    Shapes: P rows -> (Pairs, FrictionFrame) with min(size, P) rows."""
+    (rows,) = jnp.nonzero(pairs.valid, size=min(size, pairs.valid.shape[0]), fill_value=0)
+    sub = take(pairs, rows, jnp.arange(rows.shape[0]) < jnp.sum(pairs.valid))
+    if frame is None:
+        return sub, None
+    live = frame.lam != 0
+    (rows,) = jnp.nonzero(live, size=min(size, live.shape[0]), fill_value=0)
+    return sub, _take_frame(frame, rows, jnp.arange(rows.shape[0]) < jnp.sum(live))
 
 
 def step_pairs(cloth, sc: SelfContact, x, p):

@@ -28,6 +28,7 @@ import numpy as np
 from diffcloth.physics.mesh import colliders as mc
 from diffcloth.physics.mesh import energy, hessian, linsolve
 from diffcloth.physics.mesh import selfcontact_energy as sce
+from diffcloth.physics.mesh import selfcontact_step as scs
 from diffcloth.physics.mesh.fabric import Fabric
 from diffcloth.physics.mesh.linsolve import _block_jacobi, _cg
 from diffcloth.physics.mesh.topology import ClothMesh, active_part
@@ -197,19 +198,14 @@ def _hessian(problem: _Problem, x, theta, pairs=None):
 
 
 def _couplings(problem: _Problem, x, theta, pairs=None):
-    """Self-contact: the PSD couplings between the vertices of each pair (the barrier's
-    Gauss-Newton term and, in an implicit step, the lagged friction's), for `linsolve.factor`;
-    None without self-contact."""
+    """Self-contact: the pairs' PSD couplings for `linsolve.factor` (`selfcontact_step.
+    couplings`); None without self-contact."""
     if not problem.self_contact:
         return None
-    cloth, sc = theta["cloth"], theta["self_contact"]
-    x = _place(theta, x)
-    pairs = sce.find_pairs(cloth, sc, x, sc.thickness) if pairs is None else pairs
-    parts = [sce.barrier_cores(cloth, sc, x, pairs)]
-    if problem.kind == "implicit":
-        mu = theta["fabric"].friction * sc.friction
-        parts.append(sce.friction_cores(theta["sc_frame"], x, theta["x_n"], mu, _FRICTION_EPS))
-    return tuple(jnp.concatenate(a) for a in zip(*parts, strict=True))
+    cloth, sc, mu = theta["cloth"], theta["self_contact"], theta["fabric"].friction
+    frame = theta["sc_frame"] if problem.kind == "implicit" else None
+    return scs.couplings(cloth, sc, _place(theta, x), pairs, frame, theta.get("x_n"),
+                         mu * sc.friction, _FRICTION_EPS)  # fmt: skip
 
 
 def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
@@ -224,7 +220,10 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     mass = energy.vertex_mass(cloth, fabric)
     gnorm = jnp.sqrt(jnp.sum(theta["gravity"] ** 2))
     weight = mass * jnp.maximum(gnorm, 1e-3)
-    total = total_0 = lambda x: _energy(problem, x, theta)
+    cs0 = None  # self-contact: the candidate pairs and those active at x0 (selfcontact_step)
+    if problem.self_contact:
+        cs0 = scs.start(cloth, theta["self_contact"], x0, theta.get("sc_pairs"))
+    total = total_0 = lambda x: _energy(problem, x, theta, None if cs0 is None else cs0.active)
     grad_fn = grad_0 = jax.grad(total)
     eye = jnp.eye(3, dtype=x0.dtype)
     alphas = jnp.asarray(0.5 ** np.arange(max(st.line_search, 1)), x0.dtype)  # 1, 1/2, ...
@@ -235,7 +234,7 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         return jnp.where(jnp.isfinite(r), r, jnp.inf)
 
     def cond(c):
-        x, e, g, mu, nu, eta, k, res, _, _ = c
+        x, e, g, mu, nu, eta, k, res, _, _, _ = c
         # at least one step: where float32 rounding puts the tolerance above the start's
         # residual (a fine mesh's implicit step: weight-sized force noise), the start would
         # count as converged and the step would not move
@@ -247,11 +246,10 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         return linsolve.factor(hmat, cloth.neighbors, free, _couplings(problem, x, theta, pairs))
 
     def body(c):
-        x, e, g, mu, nu, eta, k, res, token, fresh = c
+        x, e, g, mu, nu, eta, k, res, token, fresh, cs = c
         total, grad_fn, pairs = total_0, grad_0, None
         if problem.self_contact:  # the pairs in contact at x
-            sc = theta["self_contact"]
-            pairs = sce.find_pairs(cloth, sc, x, sc.thickness)
+            sc, pairs = theta["self_contact"], cs.active
             grad_fn = jax.grad(lambda y: _energy(problem, y, theta, pairs))
         if st.linear_solver == "direct":
             # Newton-Krylov: CG on the exact Hessian (+ mu M), preconditioned by the LU of the
@@ -283,15 +281,11 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         p, shrink = p * fmask, 1.0
         if problem.self_contact:  # step filter: the cap on a vertex's move, then CCD on the
             # pairs the step can reach (their energy is then exact along it)
-            step = jnp.max(jnp.sqrt(jnp.sum(p * p, axis=-1)))
-            shrink = jnp.minimum(1.0, sce.step_radius(cloth, sc) / jnp.maximum(step, 1e-30))
-            pairs = sce.step_pairs(cloth, sc, x, p * shrink)
-            shrink = shrink * sce.step_bound(x, p * shrink, pairs)
-            p = p * shrink
+            p, shrink, pairs, cs = scs.filter_step(cloth, sc, cs, x, p)
             total = lambda y: _energy(problem, y, theta, pairs)
-            grad_fn = jax.grad(total)
         gp = jnp.minimum(jnp.vdot(g, p), 0.0)  # the model's slope along p
-        e_all = jax.vmap(lambda a: total(x + a * p))(alphas)
+        along = lambda a: total(x + a * p)  # (a map with self-contact: each energy's pair sets)
+        e_all = jax.lax.map(along, alphas) if problem.self_contact else jax.vmap(along)(alphas)
         # a decrease, up to the energy's rounding error (float32 cannot resolve the last steps
         # of a stiff membrane's solve in the total energy)
         good = jnp.isfinite(e_all) & (e_all <= e + armijo * alphas * gp + slack)
@@ -312,6 +306,9 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         mu_new = jnp.where(accept, mu_acc, jnp.maximum(mu * grow, 1.0))
         x = jnp.where(accept, x + alpha * p, x)
         e = jnp.where(accept, e_try, e)
+        if problem.self_contact:  # the pairs in contact at the new x
+            cs = scs.after_step(sc, cs, x, pairs, accept)
+            grad_fn = jax.grad(lambda y: _energy(problem, y, theta, cs.active))
         g_new = jnp.where(accept, grad_fn(x) * fmask, g)
         if st.krylov_forcing:  # Eisenstat-Walker's choice 2, safeguarded
             drop = jnp.vdot(g_new, g_new) / jnp.maximum(jnp.vdot(g, g), jnp.finfo(x0.dtype).tiny)
@@ -319,14 +316,14 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
             eta = jnp.where(accept, jnp.clip(eta_new, st.cg_tol, 0.5), eta)
         fresh = (((k + 1) % max(st.refactor_every, 1)) == 0) | ~accept
         fresh = fresh | (2 * kry > st.krylov_iters)
-        return x, e, g_new, mu_new, nu, eta, k + 1, residual(g_new), token, fresh
+        return x, e, g_new, mu_new, nu, eta, k + 1, residual(g_new), token, fresh, cs
 
     g0 = grad_fn(x0) * fmask
     eps = jnp.finfo(x0.dtype).eps
     # the force that rounding a position to the dtype's precision causes through the stiffest
     # element at that vertex, over its weight: residuals below it cannot be resolved (in float32
     # a 500 N/m membrane's quantization noise is several times a light fabric's vertex weight)
-    h0 = hessian.block_diagonal(_hessian(problem, x0, theta))
+    h0 = hessian.block_diagonal(_hessian(problem, x0, theta, None if cs0 is None else cs0.active))
     stiff = jnp.trace(h0, axis1=1, axis2=2) / 3.0
     noise = eps * (jnp.max(jnp.abs(x0), axis=-1) + 1e-3) * stiff / weight
     tol = jax.lax.stop_gradient(jnp.maximum(st.tol, 4.0 * jnp.max(jnp.where(free, noise, 0.0))))
@@ -334,8 +331,8 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     slack = jax.lax.stop_gradient(16.0 * eps * scale)
     mu0, eta0 = problem.mu0, max(st.cg_tol, 0.5) if st.krylov_forcing else st.cg_tol
     init = (x0, total(x0), g0, *(jnp.asarray(v, x0.dtype) for v in (mu0, 2.0, eta0)), 0,
-            residual(g0), jnp.int32(0), jnp.array(True))  # fmt: skip
-    x, e, g, mu, nu, eta, k, res, _, _ = jax.lax.while_loop(cond, body, init)
+            residual(g0), jnp.int32(0), jnp.array(True), cs0)  # fmt: skip
+    x, e, g, mu, nu, eta, k, res, _, _, _ = jax.lax.while_loop(cond, body, init)
     conv = (res <= tol) & jnp.all(jnp.isfinite(x))
     return EquilibriumResult(x=_place(theta, x), converged=conv, iterations=k, residual=res,
                              energy=e)  # fmt: skip
@@ -370,10 +367,12 @@ def _argmin_jvp(problem, primals, tangents):
     grad_fn = jax.grad(lambda y: _energy(problem, y, theta))
     hvp = jax.linearize(grad_fn, x)[1]  # once: each CG iteration's product is the tangent pass
     matvec = lambda p: jnp.where(fmask, hvp(p * fmask), p)
-    hmat = _hessian(problem, x, theta)
+    sc = theta["self_contact"]
+    pairs = sce.find_pairs(theta["cloth"], sc, x, sc.thickness) if problem.self_contact else None
+    hmat = _hessian(problem, x, theta, pairs)
     if problem.settings.linear_solver == "direct":  # the approximate Hessian's LU preconditions
         nbr = _cloth_of(theta).neighbors
-        token = linsolve.factor(hmat, nbr, free, _couplings(problem, x, theta))
+        token = linsolve.factor(hmat, nbr, free, _couplings(problem, x, theta, pairs))
         pre = lambda r: jnp.where(fmask, linsolve.solve(token, r), r)
     else:
         block = _block_jacobi(hessian.block_diagonal(hmat), free)

@@ -1,0 +1,107 @@
+"""Self-contact of the mesh cloth, part 3: the pair sets a Newton solve works on.
+
+The broad phase (`selfcontact.find_pairs`, the cost of a Newton step with self-contact before
+2026-11-29) runs once per solve and again only when the cloth has moved too far: the candidate
+pairs C are those within d_hat + 2 B at x_c (B = `selfcontact.step_radius`). While every
+vertex's displacement from x_c, less a common translation c, stays within B
+(max_i |x_i - x_c,i - c| <= B), a pair outside C is still at least d_hat apart (its distance
+moves by at most the two sides' displacements, and not at all under a translation), so C holds
+every pair the barrier sees. A step x -> x + a p, a in [0, 1], is checked at its end (the
+displacement is then within B for every a, with the centres interpolated); where it is not, C
+is found again at x. Each step is capped so that max_i |p_i - c| <= B (a translation, such as
+a falling sheet's, is not capped): after a new broad phase the step always fits.
+
+Per Newton iteration, on C's rows (`selfcontact_energy.within`): the active pairs (closer than
+d_hat at the iterate: the gradient, the Hessian-vector products, the preconditioner) and the
+step's pairs (those the step can bring within d_hat, by the distance at x less the pair's
+relative motion bound: the step filter's CCD and the line search). The energies on them are
+the energies on every pair of the cloth (the barrier is zero beyond d_hat).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from diffcloth._math import safe_norm
+from diffcloth.physics.mesh import selfcontact_energy as sce
+from diffcloth.physics.mesh.selfcontact import Pairs, SelfContact, find_pairs, step_radius
+
+__all__ = ["Candidates", "after_step", "candidates", "couplings", "filter_step", "spread", "start"]
+
+
+class Candidates(NamedTuple):
+    """pairs: C, the candidate pairs (within d_hat + 2 B of x_c); x_c: (n, 3) where they were
+    found; active: the pairs closer than d_hat at the current iterate (C's rows); builds: ()
+    int32, broad phases run."""
+
+    pairs: Pairs
+    x_c: jax.Array
+    active: Pairs
+    builds: jax.Array
+
+
+def candidates(cloth, sc: SelfContact, x) -> Pairs:
+    """C at x (n, 3): every pair within d_hat + 2 `step_radius` (the broad phase).
+    Shapes: x (n, 3) -> Pairs."""
+    return find_pairs(cloth, sc, x, sc.thickness + 2.0 * step_radius(cloth, sc))
+
+
+def spread(u):
+    """() m, max_i |u_i - c| with c the centre of u's bounding box (the displacement u (n, 3)
+    less a common translation). Shapes: u (n, 3) -> ()."""
+    u = jax.lax.stop_gradient(u)
+    c = 0.5 * (jnp.min(u, axis=0) + jnp.max(u, axis=0))
+    return jnp.max(safe_norm(u - c))
+
+
+def start(cloth, sc: SelfContact, x, pairs: Pairs | None = None) -> Candidates:
+    """The pair sets at the start x (n, 3) of a solve; pairs: C found at x (default: here).
+    Shapes: x (n, 3) -> Candidates."""
+    x = jax.lax.stop_gradient(x)
+    c = candidates(cloth, sc, x) if pairs is None else pairs
+    return Candidates(c, x, sce.within(x, c, sc.thickness), jnp.int32(pairs is None))
+
+
+def filter_step(cloth, sc: SelfContact, cs: Candidates, x, p):
+    """The step filter: p (n, 3) capped (max_i |p_i - c| <= B), C found again at x if x + p
+    leaves its reach, the step's pairs, and the CCD bound on them.
+    Shapes: x, p (n, 3) -> (p (n, 3), shrink (), step's Pairs, Candidates)."""
+    x, p = jax.lax.stop_gradient(x), jax.lax.stop_gradient(p)
+    reach = step_radius(cloth, sc)
+    shrink = jnp.minimum(1.0, reach / jnp.maximum(spread(p), 1e-30))
+    p = p * shrink
+    moved = jnp.maximum(spread(x - cs.x_c), spread(x + p - cs.x_c))
+    cs = jax.lax.cond(
+        moved <= reach,
+        lambda: cs,
+        lambda: cs._replace(pairs=candidates(cloth, sc, x), x_c=x, builds=cs.builds + 1),
+    )
+    pairs = sce.within(x, cs.pairs, sc.thickness, p)
+    bound = sce.step_bound(x, p, pairs)
+    return p * bound, shrink * bound, pairs, cs
+
+
+def after_step(sc: SelfContact, cs: Candidates, x, pairs: Pairs, accept) -> Candidates:
+    """The active pairs at the new iterate x (n, 3) (accepted: within d_hat among the step's
+    pairs; else as before).
+    Shapes: x (n, 3) -> Candidates."""
+    new = sce.within(x, pairs, sc.thickness)
+    active = jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), new, cs.active)
+    return cs._replace(active=active)
+
+
+def couplings(cloth, sc: SelfContact, x, pairs, frame, x_prev, mu, eps):
+    """The PSD couplings between the vertices of each pair in contact at x (n, 3) (the
+    barrier's Gauss-Newton term and, with a friction frame, the lagged friction's), for
+    `linsolve.factor`: the first P/8 of each (any more are left out of the preconditioner,
+    which stays PSD). pairs: a superset of those within d_hat (default: found here).
+    Shapes: x (n, 3) -> (idx (Q, 4), w (Q, 4), core (Q, 3, 3))."""
+    pairs = find_pairs(cloth, sc, x, sc.thickness) if pairs is None else pairs
+    pairs, frame = sce.compact(pairs, frame, max(256, pairs.valid.shape[0] // 8))
+    parts = [sce.barrier_cores(cloth, sc, x, pairs)]
+    if frame is not None:
+        parts.append(sce.friction_cores(frame, x, x_prev, mu, eps))
+    return tuple(jnp.concatenate(a) for a in zip(*parts, strict=True))
