@@ -158,6 +158,7 @@ def _simulate(args) -> int:
     from diffcloth import memory, physics
     from diffcloth.config import build_physics, load_config
     from diffcloth.outdir import OutputDir, config_inputs
+    from diffcloth.physics.grid_contact import failure_note
     from diffcloth.physics.rollout import ADVICE
     from diffcloth.pipeline import split_colliders
     from diffcloth.scene import build_bodies, check_run_stability
@@ -223,9 +224,11 @@ def _simulate(args) -> int:
             ok = ok & np.isfinite(np.asarray(b.position)).reshape(n, -1).all(axis=1)
         if not ok.all():
             out.discard()
+            bad = int(np.argmin(ok))
+            x_ok = state.x if bad == 0 else traj.x[bad - 1]
             _err(
                 f"unstable: the cloth blew up (non-finite or exploded state) at frame "
-                f"{done + int(np.argmin(ok))}; {ADVICE}"
+                f"{done + bad}; {ADVICE}{failure_note(net, sim, x_ok)}"
             )
             return 1
         state, bods = last(traj), last(body_traj)
@@ -420,8 +423,11 @@ def _render(args) -> int:
             why = pipeline.mesh_failure(scene) or f"non-finite state at frame {bad}"
             _err(f"the mesh cloth gives no shape: {why}; nothing written")
             return 1
+        from diffcloth.physics.grid_contact import failure_note
+
+        x_ok = scene.state.x if bad == 0 else traj.x[bad - 1]
         _err(f"unstable: the simulation blew up (non-finite or exploded state) at frame {bad}; "
-             f"{ADVICE}")  # fmt: skip
+             f"{ADVICE}{failure_note(scene.net, scene.sim, x_ok)}")  # fmt: skip
         return 1
     print(f"  simulated in {time.perf_counter() - t0:.1f} s", flush=True)
     xs, spheres = pipeline.rendered_states(scene, traj, bodies)

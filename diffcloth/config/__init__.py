@@ -197,9 +197,7 @@ def _check_cloth_sections(data: Mapping[str, Any], cloth: ClothConfig) -> None:
     sim = data.get("sim", {}) if isinstance(data.get("sim", {}), Mapping) else {}
     if not cloth.is_mesh:
         extra = [f"[{k}]" for k in MESH_SECTIONS if k in data]
-        extra += [f"[sim] {k}" for k in ("mode", "perturb", "solver_iters", "solver_tol",
-                                         "self_contact", "self_contact_thickness",
-                                         "self_contact_capacity")
+        extra += [f"[sim] {k}" for k in ("mode", "perturb", "solver_iters", "solver_tol")
                   if k in sim]  # fmt: skip
         if extra:
             raise ConfigError(

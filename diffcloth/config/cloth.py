@@ -450,8 +450,9 @@ def build_mesh_physics(config, dtype=None):
         from diffcloth.physics.mesh.selfcontact import make_self_contact
 
         try:
-            contact = make_self_contact(s.self_contact_thickness, capacity=s.self_contact_capacity,
-                                        cloth=cloth, dtype=cloth.rest.dtype)  # fmt: skip
+            cap = s.self_contact_capacity or 8  # (a grid's default is 16)
+            contact = make_self_contact(s.self_contact_thickness, capacity=cap, cloth=cloth,
+                                        dtype=cloth.rest.dtype)  # fmt: skip
         except ValueError as err:
             raise ConfigError(f"{where}[sim] {err} (self_contact_thickness)") from None
         sim = dataclasses.replace(sim, self_contact=contact)

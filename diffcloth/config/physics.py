@@ -104,9 +104,10 @@ class SimConfig:
     perturb: Mapping[str, Any] | None = None
     solver_iters: int | None = None
     solver_tol: float | None = None
+    # both cloth kinds (the grid net: physics.grid_contact; None: 8 for a mesh, 16 for a grid)
     self_contact: bool = False
     self_contact_thickness: float = 2e-3
-    self_contact_capacity: int = 8
+    self_contact_capacity: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -373,6 +374,17 @@ def build_physics(config, dtype=None) -> PhysicsScene:
     else:
         material = physics.make_material(dtype=dtype, **m.fields())
     check_physics_dtype(config, net, sim, material)  # masses, lengths, weights, substep
+    if s.self_contact:  # off: sim.self_contact stays None (the step's program is unchanged)
+        from diffcloth.physics.grid_contact import make_grid_self_contact
+
+        try:
+            contact = make_grid_self_contact(s.self_contact_thickness, net=net,
+                                             capacity=s.self_contact_capacity or 16,
+                                             dtype=net.rest.dtype)  # fmt: skip
+        except ValueError as err:
+            where = f"{config.path}: " if config.path else ""
+            raise ConfigError(f"{where}[sim] {err} (self_contact_thickness)") from None
+        sim = dataclasses.replace(sim, self_contact=contact)
     spheres = [make_sphere(sp.center, sp.radius, dtype=dtype) for sp in config.spheres]
     planes = [make_plane(pl.normal, pl.offset, dtype=dtype) for pl in config.planes]
     colliders = physics.make_colliders(spheres, planes, dtype=dtype) if spheres or planes else None

@@ -14,14 +14,16 @@ vertex excluded. Each substep, from its start positions x:
    its reach in the substep.
 2. Response (velocities, before the drift): each pair closer than d_hat (unsigned distance d,
    unit gap direction n, closest-point weights w_k, relative velocity u = sum_k w_k v_k) gets the
-   normal impulse J = max(J_pen, -u.n / W), J_pen = h kappa A (d_hat - d)^2 / d_hat (a smooth
-   penalty, C1 at d_hat; kappa = `SelfContact.stiffness` N/m^3, A the pair's area) and
-   W = sum_k w_k^2 / m_k (pinned points: 1/m = 0). So the pair stops approaching and is pushed
-   apart. Friction is the colliders' Coulomb rule: the tangential relative speed shrinks by
-   mu x the normal speed change, mu = material.friction x `SelfContact.friction`. Point k gets
-   w_k / m_k (J n - J_t t); a point in several pairs gets their mean. Edge-edge impulses carry
-   IPC's mollifier (`mesh.selfcontact_energy.mollifier`): nearly parallel edges, whose closest
-   points jump, hand the response to the vertex-triangle pairs.
+   normal impulse J = max(J_pen, s(d) (-u.n) / W): J_pen = h kappa A (d_hat - d)^2 / d_hat, a
+   smooth penalty (C1 at d_hat; kappa = `SelfContact.stiffness` N/m^3, A the pair's area),
+   W = sum_k w_k^2 / m_k (pinned points: 1/m = 0), and s(d) a C1 ramp from 0 at d_hat to 1 at
+   d_hat / 2 that removes the approaching relative speed (fully from d_hat / 2 in). Friction is
+   the colliders' Coulomb rule: the tangential relative speed shrinks by mu x the normal speed
+   change (J_t = min(|u_T| / W, mu J)), mu = material.friction x `SelfContact.friction`. Point k
+   gets w_k / m_k (J n - J_t t); a point in several pairs takes the mean of their changes,
+   weighted by s(d) |w_k|. Edge-edge impulses carry IPC's mollifier
+   (`mesh.selfcontact_energy.mollifier`): nearly parallel edges, whose closest points jump,
+   hand the response to the vertex-triangle pairs.
 3. Filter (positions, after the drift, the pins and the colliders): each free point's
    displacement is shortened to at most min(r_k, 0.45 d_min), d_min the distance of the
    closest pair (step 1) that contains it; a shortened point's velocity becomes its
@@ -58,6 +60,7 @@ __all__ = [
     "GridTriangles",
     "check_overflow",
     "contact_pairs",
+    "failure_note",
     "filter_step",
     "grid_triangles",
     "make_grid_self_contact",
@@ -149,11 +152,10 @@ def max_step(net, sc: SelfContact):
 
 def reach(net, sc: SelfContact, v, h, accel=0.0):
     """(n,) m, the most each point moves in the substep: 1.5 h |v| + h^2 accel + `max_step`
-    (no gradient; accel m/s^2, the gravity for the implicit integrator, whose v is the start
+    (accel m/s^2, the gravity for the implicit integrator, whose v is the start
     velocity, not the kicked one).
     Shapes: v (n, 3) m/s, h () s, accel () -> (n,)."""
-    v, h, accel = jax.lax.stop_gradient((v, h, accel))
-    return 1.5 * h * safe_norm(v) + h * h * accel + jax.lax.stop_gradient(max_step(net, sc))
+    return 1.5 * h * safe_norm(v) + h * h * accel + max_step(net, sc)
 
 
 def contact_pairs(net, sc: SelfContact, x, motion) -> Pairs:
@@ -196,7 +198,9 @@ def respond(net, sc: SelfContact, pairs: Pairs, x, v, inv_mass, friction, h):
     depth = jnp.where(ok, dhat - d, 0.0)
     area = _pair_area(net.area.reshape(-1), pairs)
     j_pen = h * sc.stiffness * area * depth * depth / dhat
-    jn = moll * jnp.maximum(j_pen, -un / big_w)
+    t = jnp.clip(2.0 * depth / dhat, 0.0, 1.0)
+    ramp = t * t * (3.0 - 2.0 * t)  # 0 at d_hat, 1 from d_hat / 2 in (C1)
+    jn = moll * jnp.maximum(j_pen, ramp * -un / big_w)
     ut = u - un[:, None] * nrm
     ut_len = safe_norm(ut)
     mu = friction * sc.friction
@@ -205,10 +209,12 @@ def respond(net, sc: SelfContact, pairs: Pairs, x, v, inv_mass, friction, h):
     imp = jnp.where(ok[:, None], jn[:, None] * nrm - jt[:, None] * tdir, 0.0)  # (P, 3) N s
     dv = (w * im)[:, :, None] * imp[:, None, :]  # (P, 4, 3)
     n = x.shape[0]
-    total = jax.ops.segment_sum(dv.reshape(-1, 3), pairs.idx.reshape(-1), num_segments=n)
-    hits = jnp.broadcast_to(ok[:, None], pairs.idx.shape).astype(x.dtype)
-    count = jax.ops.segment_sum(hits.reshape(-1), pairs.idx.reshape(-1), num_segments=n)
-    return v + total / jnp.maximum(count, 1.0)[:, None]
+    # each point takes the mean of its pairs' changes, weighted by ramp x mollifier x |w_k|
+    c = jnp.where(ok, moll * ramp, 0.0)[:, None] * jnp.abs(w)  # (P, 4)
+    seg = lambda a: jax.ops.segment_sum(a, pairs.idx.reshape(-1), num_segments=n)
+    total = seg((c[:, :, None] * dv).reshape(-1, 3))
+    weight = seg(c.reshape(-1))
+    return v + total / jnp.where(weight > 0, weight, 1.0)[:, None]
 
 
 def filter_step(pairs: Pairs, x, x1, v1, motion, free, h):
@@ -244,6 +250,23 @@ def check_overflow(net, sim, x) -> None:
     motion = jnp.full(x.shape[:1], max_step(net, sc), x.dtype)
     pairs = jax.jit(contact_pairs)(net, sc, x, motion)
     check_pairs(pairs, "grid self-contact")
+
+
+def failure_note(net, sim, x) -> str:
+    """Eager: what to add to a failed grid rollout's message: "" with self-contact off; the
+    overflow (naming `[sim] self_contact_capacity`) when the broad phase overflows at x, the
+    last finite frame's positions; else a hint that an overflow within the frame is possible.
+    Shapes: x (rows, cols, 3) m -> str."""
+    if getattr(sim, "self_contact", None) is None:
+        return ""
+    try:
+        check_overflow(net, sim, x)
+    except ValueError as err:
+        return f"; {err}"
+    return (
+        "; with [sim] self_contact on, a broad-phase overflow within the frame also gives a "
+        "non-finite frame: raise [sim] self_contact_capacity"
+    )
 
 
 def planar_hooks(net, sc: SelfContact, material, mass, free, h, accel=0.0):

@@ -368,10 +368,13 @@ def checked_rollout(
         traj = fn(net, sim, material, state, colliders, pin_path)
     first = first_bad_frame(net, traj, sim, state)
     if first is not None:
+        from diffcloth.physics.grid_contact import failure_note
+
+        note = failure_note(net, sim, state.x if first == 0 else traj.x[first - 1])
         raise UnstableSimulationError(
             f"unstable: the cloth state became non-finite or blew up at frame {first}; {ADVICE} "
             f"(substep {float(np.asarray(sim.dt)) / sim.num_substeps:.3g} s, explicit estimate "
-            f"{stable_substep(net, sim, material, method='gershgorin'):.3g} s)"
+            f"{stable_substep(net, sim, material, method='gershgorin'):.3g} s){note}"
         )
     return traj
 
