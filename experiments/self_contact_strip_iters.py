@@ -31,7 +31,6 @@ from diffcloth.physics.mesh import (  # noqa: E402  # noqa: E402
 )
 from diffcloth.physics.mesh import colliders as mc  # noqa: E402
 from diffcloth.physics.mesh import selfcontact as sc  # noqa: E402
-from diffcloth.physics.mesh import selfcontact_energy as sce  # noqa: E402
 from diffcloth.physics.mesh import selfcontact_step as scs  # noqa: E402
 from diffcloth.physics.mesh.solve import _newton, _Problem  # noqa: E402
 
@@ -56,7 +55,7 @@ def step_with_stats(cloth, fabric, x_n, v_n, h, colliders, s, settings):
         "self_contact": s,
     }
     theta["sc_pairs"] = scs.candidates(cloth, s, x_n)  # as dynamics.implicit_step
-    theta["sc_frame"] = sce.friction_frame(cloth, s, x_n, theta["sc_pairs"])
+    theta["sc_frame"] = scs.frame(cloth, s, x_n, theta["sc_pairs"][0])
     problem = _Problem("implicit", settings, 0.0, mc.has_colliders(colliders), True)
     res = _newton(problem, theta, x_n)
     free = ~cloth.pinned

@@ -22,7 +22,13 @@ import numpy as np
 
 from diffcloth._math import safe_norm, safe_normalize
 
-__all__ = ["MeshColliders", "make_mesh_colliders", "signed_distance", "contact_energy"]
+__all__ = [
+    "MeshColliders",
+    "contact_energy",
+    "friction_energy",
+    "make_mesh_colliders",
+    "signed_distance",
+]
 
 
 @jax.tree_util.register_dataclass
@@ -269,3 +275,17 @@ def contact_normals(colliders: MeshColliders, x):
     g = jax.grad(lambda y: jnp.sum(jnp.where(jnp.isfinite(signed_distance(colliders, y)),
                                              signed_distance(colliders, y), 0.0)))(x)  # fmt: skip
     return safe_normalize(g)
+
+
+def friction_energy(colliders, x, x_prev, area, free, friction, eps):
+    """Lagged Coulomb friction as a smooth dissipation potential (IPC style): mu lambda_i
+    (sqrt(|u_T|^2 + eps^2) - eps), with the normal force lambda_i and the contact normal taken
+    at the start of the step and u_T the tangential displacement (the mesh implicit step's).
+    Shapes: x, x_prev (n, 3), area (n,), free (n,) -> ()."""
+    pen = jax.lax.stop_gradient(penetration(colliders, x_prev))
+    lam = colliders.stiffness * area * pen
+    n = jax.lax.stop_gradient(contact_normals(colliders, x_prev))
+    u = x - x_prev
+    ut = u - jnp.sum(u * n, axis=-1, keepdims=True) * n
+    slide = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps) - eps
+    return jnp.sum(jnp.where(free & (pen > 0), friction * colliders.friction * lam * slide, 0.0))

@@ -10,7 +10,6 @@ import jax.numpy as jnp
 
 from diffcloth.physics.mesh import colliders as mc
 from diffcloth.physics.mesh import energy
-from diffcloth.physics.mesh import selfcontact_energy as sce
 from diffcloth.physics.mesh import selfcontact_step as scs
 from diffcloth.physics.mesh.solve import SolverSettings, _argmin, _Problem, potential
 from diffcloth.physics.state import ClothState
@@ -65,7 +64,7 @@ def implicit_step(cloth, fabric, state: ClothState, h, *, gravity, wind=None, co
     if self_contact is not None:
         # the candidate pairs at x_n (selfcontact_step): the friction frame's and the solve's
         theta["sc_pairs"] = scs.candidates(cloth, self_contact, jax.lax.stop_gradient(x_n))
-        theta["sc_frame"] = sce.friction_frame(cloth, self_contact, x_n, theta["sc_pairs"])
+        theta["sc_frame"] = scs.frame(cloth, self_contact, x_n, theta["sc_pairs"][0])
         start = x_n
     problem = _Problem("implicit", settings, 0.0, mc.has_colliders(colliders),
                        self_contact is not None)  # fmt: skip

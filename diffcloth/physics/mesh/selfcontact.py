@@ -33,6 +33,7 @@ __all__ = [
     "check_pairs",
     "edge_edge",
     "find_pairs",
+    "find_pairs_with_distance",
     "make_self_contact",
     "point_triangle",
     "step_radius",
@@ -248,6 +249,12 @@ def find_pairs(cloth, sc: SelfContact, x, radius, motion=None) -> Pairs:
     displacement in a step, closer than radius + the largest motion of each side's vertices (the
     pairs the step can bring within radius). Not differentiated (stop_gradient).
     Shapes: x (n, 3), radius (), motion (n,) -> Pairs with P = capacity x (n + num edges)."""
+    return find_pairs_with_distance(cloth, sc, x, radius, motion)[0]
+
+
+def find_pairs_with_distance(cloth, sc: SelfContact, x, radius, motion=None):
+    """`find_pairs`, and each row's distance at x (m; inf on rows that hold no pair).
+    Shapes: x (n, 3), radius (), motion (n,) -> (Pairs with P rows, (P,))."""
     x = jax.lax.stop_gradient(x)
     radius = jax.lax.stop_gradient(radius)
     f, e = cloth.faces, cloth.edges
@@ -276,16 +283,20 @@ def find_pairs(cloth, sc: SelfContact, x, radius, motion=None) -> Pairs:
                  else jnp.max(m4[:, :2], axis=1) + jnp.max(m4[:, 2:], axis=1))  # fmt: skip
         good = good & (d < radius + reach)
         (sel,) = jnp.nonzero(good, size=size, fill_value=0)
-        out.append((idx[sel], kind[:size], jnp.arange(size) < jnp.sum(good), jnp.sum(good), size))
+        live = jnp.arange(size) < jnp.sum(good)
+        out.append(
+            (idx[sel], kind[:size], live, jnp.sum(good), size, jnp.where(live, d[sel], jnp.inf))
+        )
     overflow = (tot_vt > 16 * cap * n) | (tot_ee > 16 * cap * ne)
     overflow = overflow | (out[0][3] > out[0][4]) | (out[1][3] > out[1][4])
-    return Pairs(
+    pairs = Pairs(
         idx=jnp.concatenate([out[0][0], out[1][0]]),
         kind=jnp.concatenate([out[0][1], out[1][1]]),
         valid=jnp.concatenate([out[0][2], out[1][2]]),
         overflow=overflow,
         count=(out[0][3] + out[1][3]).astype(jnp.int32),
     )
+    return pairs, jnp.concatenate([out[0][5], out[1][5]])
 
 
 def check_pairs(pairs: Pairs, what: str = "self-contact") -> Pairs:

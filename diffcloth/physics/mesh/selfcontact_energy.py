@@ -13,7 +13,7 @@ lowers the energy, never lets two non-adjacent primitives touch: the cloth stays
 self-intersection. The barrier's weight at rest is the pressure kappa |b'(d)|: a 0.3 kg/m^2
 layer resting on another sits where kappa |b'(d)| = 3 Pa.
 
-Friction: the colliders' model (`solve._friction_energy`): lagged Coulomb friction as a smooth
+Friction: the colliders' model (`colliders.friction_energy`): lagged Coulomb friction as a smooth
 dissipation potential mu lambda (sqrt(|u_T|^2 + eps^2) - eps) per pair, with the normal force
 lambda = kappa A |b'(d)|, the contact normal and the closest-point weights taken at the start of
 the step, and u_T the pair's relative tangential displacement.
@@ -43,11 +43,13 @@ __all__ = [
     "barrier_blocks",
     "barrier_cores",
     "barrier_energy",
+    "barrier_grad",
     "compact",
     "friction_energy",
     "friction_blocks",
     "friction_cores",
     "friction_frame",
+    "friction_grad",
     "mollifier",
     "take",
     "within",
@@ -159,13 +161,24 @@ def barrier_energy(cloth, sc: SelfContact, x, pairs: Pairs):
     NaN if the broad phase overflowed (a solve then fails rather than miss a contact).
     Shapes: x (n, 3) -> ()."""
 
-    def on(rows, live):
-        sub = take(pairs, rows, live)
-        # padding rows may repeat an excluded (incident, d = 0) pair: keep them off the barrier
-        d = jnp.where(sub.valid, safe_norm(gap(x, sub.idx, sub.kind)), sc.thickness)
-        area = _pair_area(cloth, sub) * mollifier(cloth, x, sub)
-        return jnp.sum(jnp.where(sub.valid, area * barrier(d, sc.thickness), 0.0))
+    on = lambda rows, live: _barrier_sum(cloth, sc, x, take(pairs, rows, live))
+    return jnp.where(pairs.overflow, jnp.nan, sc.stiffness * bucketed(pairs.valid, on))
 
+
+def _barrier_sum(cloth, sc, x, sub: Pairs):
+    # padding rows may repeat an excluded (incident, d = 0) pair: keep them off the barrier
+    d = jnp.where(sub.valid, safe_norm(gap(x, sub.idx, sub.kind)), sc.thickness)
+    area = _pair_area(cloth, sub) * mollifier(cloth, x, sub)
+    return jnp.sum(jnp.where(sub.valid, area * barrier(d, sc.thickness), 0.0))
+
+
+def barrier_grad(cloth, sc: SelfContact, x, pairs: Pairs):
+    """The gradient (n, 3) of `barrier_energy`, differentiated inside each size's branch (a
+    gradient through the `bucketed` switch would fill every other size's intermediates with
+    zeros: the padded size's cost). Forward-differentiable (Hessian-vector products by jvp).
+    Shapes: x (n, 3) -> (n, 3)."""
+    dx = jax.grad(_barrier_sum, argnums=2)
+    on = lambda rows, live: dx(cloth, sc, x, take(pairs, rows, live))
     return jnp.where(pairs.overflow, jnp.nan, sc.stiffness * bucketed(pairs.valid, on))
 
 
@@ -268,16 +281,24 @@ def friction_energy(frame: FrictionFrame, x, x_prev, mu, eps):
     """Lagged friction potential in J (module docstring). mu: () Coulomb coefficient; eps: ()
     m, the slip below which friction is smoothed.
     Shapes: x, x_prev (n, 3) -> ()."""
+    on = lambda rows, live: _friction_sum(_take_frame(frame, rows, live), x, x_prev, eps)
+    return jnp.where(frame.overflow, jnp.nan, mu * bucketed(frame.lam != 0, on))
 
-    def on(rows, live):
-        fr = _take_frame(frame, rows, live)
-        u = jnp.einsum("pk,pki->pi", fr.w, (x - x_prev)[fr.idx])
-        ut = u - jnp.sum(u * fr.normal, axis=-1, keepdims=True) * fr.normal
-        slide = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps) - eps
-        return jnp.sum(fr.lam * slide)
 
-    e = mu * bucketed(frame.lam != 0, on)
-    return jnp.where(frame.overflow, jnp.nan, e)
+def _friction_sum(fr: FrictionFrame, x, x_prev, eps):
+    u = jnp.einsum("pk,pki->pi", fr.w, (x - x_prev)[fr.idx])
+    ut = u - jnp.sum(u * fr.normal, axis=-1, keepdims=True) * fr.normal
+    slide = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps) - eps
+    return jnp.sum(fr.lam * slide)
+
+
+def friction_grad(frame: FrictionFrame, x, x_prev, mu, eps):
+    """The gradient (n, 3) of `friction_energy` with respect to x, differentiated inside each
+    size's branch (as `barrier_grad`).
+    Shapes: x, x_prev (n, 3) -> (n, 3)."""
+    dx = jax.grad(_friction_sum, argnums=1)
+    on = lambda rows, live: dx(_take_frame(frame, rows, live), x, x_prev, eps)
+    return jnp.where(frame.overflow, jnp.nan, mu * bucketed(frame.lam != 0, on))
 
 
 def _take_frame(frame: FrictionFrame, rows, live) -> FrictionFrame:

@@ -9,7 +9,10 @@ moves by at most the two sides' displacements, and not at all under a translatio
 every pair the barrier sees. A step x -> x + a p, a in [0, 1], is checked at its end (the
 displacement is then within B for every a, with the centres interpolated); where it is not, C
 is found again at x. Each step is capped so that max_i |p_i - c| <= B (a translation, such as
-a falling sheet's, is not capped): after a new broad phase the step always fits.
+a falling sheet's, is not capped): after a new broad phase the step always fits. Where C at
+that reach overflows the broad phase's capacity (a pile of layers), C is found with the reach
+of the step at hand only (and again at every step while it overflows: the steps shrink as the
+damping grows, as before 2026-11-29).
 
 Per Newton iteration, on C's rows (`selfcontact_energy.within`): the active pairs (closer than
 d_hat at the iterate: the gradient, the Hessian-vector products, the preconditioner) and the
@@ -27,26 +30,59 @@ import jax.numpy as jnp
 
 from diffcloth._math import safe_norm
 from diffcloth.physics.mesh import selfcontact_energy as sce
-from diffcloth.physics.mesh.selfcontact import Pairs, SelfContact, find_pairs, step_radius
+from diffcloth.physics.mesh.selfcontact import (
+    Pairs,
+    SelfContact,
+    find_pairs,
+    find_pairs_with_distance,
+    step_radius,
+)
 
-__all__ = ["Candidates", "after_step", "candidates", "couplings", "filter_step", "spread", "start"]
+__all__ = [
+    "Candidates",
+    "after_step",
+    "candidates",
+    "couplings",
+    "filter_step",
+    "frame",
+    "grad",
+    "spread",
+    "start",
+]
 
 
 class Candidates(NamedTuple):
-    """pairs: C, the candidate pairs (within d_hat + 2 B of x_c); x_c: (n, 3) where they were
-    found; active: the pairs closer than d_hat at the current iterate (C's rows); builds: ()
-    int32, broad phases run."""
+    """pairs: C, the candidate pairs (within d_hat + 2 reach of x_c); x_c: (n, 3) where they
+    were found; reach: () m, B; active: the pairs closer than d_hat at the current iterate;
+    builds: () int32, broad phases run; dist: (P,) m, C's distances at x_c."""
 
     pairs: Pairs
     x_c: jax.Array
+    reach: jax.Array
     active: Pairs
     builds: jax.Array
+    dist: jax.Array
 
 
-def candidates(cloth, sc: SelfContact, x) -> Pairs:
-    """C at x (n, 3): every pair within d_hat + 2 `step_radius` (the broad phase).
-    Shapes: x (n, 3) -> Pairs."""
-    return find_pairs(cloth, sc, x, sc.thickness + 2.0 * step_radius(cloth, sc))
+def candidates(cloth, sc: SelfContact, x, reach=None):
+    """C at x (n, 3): every pair within d_hat + 2 reach (default `step_radius`; the broad
+    phase), and each row's distance (inf where it holds no pair).
+    Shapes: x (n, 3), reach () -> (Pairs with P rows, (P,))."""
+    reach = step_radius(cloth, sc) if reach is None else reach
+    return find_pairs_with_distance(cloth, sc, x, sc.thickness + 2.0 * reach)
+
+
+def _found(cloth, sc, x, small, found=None):
+    """(C, distances, reach, broad phases): C at x with reach `step_radius` (found: that C and
+    its distances, from `candidates`), or with reach `small` where that overflows."""
+    big = step_radius(cloth, sc)
+    find = lambda r: candidates(cloth, sc, x, r)
+    c, d = find(big) if found is None else found
+    return jax.lax.cond(
+        c.overflow,
+        lambda: (*find(small), jnp.asarray(small, x.dtype), jnp.int32(2)),
+        lambda: (c, d, jnp.asarray(big, x.dtype), jnp.int32(1)),
+    )
 
 
 def spread(u):
@@ -57,12 +93,14 @@ def spread(u):
     return jnp.max(safe_norm(u - c))
 
 
-def start(cloth, sc: SelfContact, x, pairs: Pairs | None = None) -> Candidates:
-    """The pair sets at the start x (n, 3) of a solve; pairs: C found at x (default: here).
+def start(cloth, sc: SelfContact, x, found=None) -> Candidates:
+    """The pair sets at the start x (n, 3) of a solve; found: `candidates` at x (default:
+    found here).
     Shapes: x (n, 3) -> Candidates."""
     x = jax.lax.stop_gradient(x)
-    c = candidates(cloth, sc, x) if pairs is None else pairs
-    return Candidates(c, x, sce.within(x, c, sc.thickness), jnp.int32(pairs is None))
+    c, d, reach, builds = _found(cloth, sc, x, 0.0, found)
+    active = c._replace(valid=c.valid & (d < sc.thickness))
+    return Candidates(c, x, reach, active, builds, d)
 
 
 def filter_step(cloth, sc: SelfContact, cs: Candidates, x, p):
@@ -74,12 +112,18 @@ def filter_step(cloth, sc: SelfContact, cs: Candidates, x, p):
     shrink = jnp.minimum(1.0, reach / jnp.maximum(spread(p), 1e-30))
     p = p * shrink
     moved = jnp.maximum(spread(x - cs.x_c), spread(x + p - cs.x_c))
-    cs = jax.lax.cond(
-        moved <= reach,
-        lambda: cs,
-        lambda: cs._replace(pairs=candidates(cloth, sc, x), x_c=x, builds=cs.builds + 1),
-    )
-    pairs = sce.within(x, cs.pairs, sc.thickness, p)
+
+    def again():
+        c, d, r, b = _found(cloth, sc, x, 1.001 * spread(p))
+        return cs._replace(pairs=c, x_c=x, reach=r, builds=cs.builds + b, dist=d)
+
+    keep = (moved <= cs.reach) & ~cs.pairs.overflow
+    cs = jax.lax.cond(keep, lambda: cs, again)
+    moved = jnp.where(keep, moved, spread(p))
+    # C's rows that x + a p can bring within d_hat by the cloth's displacement from x_c (less a
+    # translation) at most; then by the pair's own distance and relative motion
+    near = cs.pairs._replace(valid=cs.pairs.valid & (cs.dist < sc.thickness + 2.0 * moved))
+    pairs = sce.within(x, near, sc.thickness, p)
     bound = sce.step_bound(x, p, pairs)
     return p * bound, shrink * bound, pairs, cs
 
@@ -105,3 +149,28 @@ def couplings(cloth, sc: SelfContact, x, pairs, frame, x_prev, mu, eps):
     if frame is not None:
         parts.append(sce.friction_cores(frame, x, x_prev, mu, eps))
     return tuple(jnp.concatenate(a) for a in zip(*parts, strict=True))
+
+
+def frame(cloth, sc: SelfContact, x_prev, pairs: Pairs) -> sce.FrictionFrame:
+    """`selfcontact_energy.friction_frame` at x_prev (n, 3) on the candidate pairs found there
+    (`candidates`), or on the pairs within d_hat where those overflowed.
+    Shapes: x_prev (n, 3) -> FrictionFrame."""
+    x_prev = jax.lax.stop_gradient(x_prev)
+    return jax.lax.cond(
+        pairs.overflow,
+        lambda: sce.friction_frame(cloth, sc, x_prev),
+        lambda: sce.friction_frame(cloth, sc, x_prev, pairs),
+    )
+
+
+def grad(theta, x, pairs: Pairs, eps):
+    """The gradient (n, 3) of the self-contact terms of a solve's energy at x (n, 3), pinned
+    vertices placed (zero on them): the barrier on pairs and, in an implicit step (theta holds
+    "sc_frame"), the lagged friction (`selfcontact_energy.barrier_grad`, `friction_grad`).
+    Shapes: x (n, 3) -> (n, 3)."""
+    cloth, sc = theta["cloth"], theta["self_contact"]
+    g = sce.barrier_grad(cloth, sc, x, pairs)
+    if "sc_frame" in theta:
+        mu = theta["fabric"].friction * sc.friction
+        g = g + sce.friction_grad(theta["sc_frame"], x, theta["x_n"], mu, eps)
+    return g * theta["free"][:, None]

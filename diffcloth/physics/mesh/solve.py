@@ -134,14 +134,14 @@ def _place(theta, x):
     return jnp.where(theta["free"][:, None], x, theta["x_pins"])
 
 
-def _energy(problem: _Problem, x, theta, pairs=None):
+def _energy(problem: _Problem, x, theta, pairs=None, contact=True):
     """The minimised energy in J at x (n, 3) (pinned vertices placed at x_pins); with
-    self-contact, the barrier on `pairs` (default: those within d_hat of x)."""
+    self-contact (and contact), the barrier on `pairs` (default: those within d_hat of x)."""
     cloth, fabric = theta["cloth"], theta["fabric"]
     cols = theta["colliders"] if problem.colliders else None
     x = _place(theta, x)
     e = potential(cloth, fabric, x, theta["gravity"], cols)
-    if problem.self_contact:
+    if problem.self_contact and contact:
         sc = theta["self_contact"]
         pairs = sce.find_pairs(cloth, sc, x, sc.thickness) if pairs is None else pairs
         e = e + sce.barrier_energy(cloth, sc, x, pairs)
@@ -160,8 +160,8 @@ def _energy(problem: _Problem, x, theta, pairs=None):
         rel = (x - x_n) - h * theta["wind"][None, :]
         e = e + 0.5 * fabric.drag / h * jnp.sum(cloth.vertex_area[:, None] * rel * rel)
         if problem.colliders:
-            e = e + _friction_energy(cols, x, x_n, cloth.vertex_area, theta["free"],
-                                     fabric.friction, _FRICTION_EPS)  # fmt: skip
+            e = e + mc.friction_energy(cols, x, x_n, cloth.vertex_area, theta["free"],
+                                       fabric.friction, _FRICTION_EPS)  # fmt: skip
     return e
 
 
@@ -224,7 +224,14 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
     if problem.self_contact:
         cs0 = scs.start(cloth, theta["self_contact"], x0, theta.get("sc_pairs"))
     total = total_0 = lambda x: _energy(problem, x, theta, None if cs0 is None else cs0.active)
-    grad_fn = grad_0 = jax.grad(total)
+
+    def grad_with(pairs):  # self-contact: its terms' gradient taken in their size's branch
+        if not problem.self_contact:
+            return jax.grad(total_0)
+        rest = jax.grad(lambda y: _energy(problem, y, theta, contact=False))
+        return lambda y: rest(y) + scs.grad(theta, _place(theta, y), pairs, _FRICTION_EPS)
+
+    grad_fn = grad_0 = grad_with(None if cs0 is None else cs0.active)
     eye = jnp.eye(3, dtype=x0.dtype)
     alphas = jnp.asarray(0.5 ** np.arange(max(st.line_search, 1)), x0.dtype)  # 1, 1/2, ...
     armijo = 1e-4 if st.line_search > 1 else 0.0
@@ -250,7 +257,7 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         total, grad_fn, pairs = total_0, grad_0, None
         if problem.self_contact:  # the pairs in contact at x
             sc, pairs = theta["self_contact"], cs.active
-            grad_fn = jax.grad(lambda y: _energy(problem, y, theta, pairs))
+            grad_fn = grad_with(pairs)
         if st.linear_solver == "direct":
             # Newton-Krylov: CG on the exact Hessian (+ mu M), preconditioned by the LU of the
             # PSD approximation (refactored as `refactor_every` says); at negative curvature,
@@ -258,7 +265,9 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
             token = jax.lax.cond(fresh, lambda: factor(x, mu, pairs), lambda: token)
             pre = lambda r: linsolve.solve(token, r) * fmask
             # linearized once per step: each Krylov iteration's product skips the primal pass
-            hvp = jax.linearize(grad_fn, x)[1]
+            hvp = jax.linearize(grad_fn, x)[1]  # (self-contact: a jvp each, as a linearized
+            if problem.self_contact:  # switch keeps every size's intermediates)
+                hvp = lambda v: jax.jvp(grad_fn, (x,), (v,))[1]
             exact = lambda p: (hvp(p * fmask) + mu * mass[:, None] * p) * fmask
             # at a direction of negative curvature in the damped phase (mu > 0: a buckling
             # membrane, where mu M does not cover the exact Hessian's compressive part), the
@@ -308,7 +317,7 @@ def _newton(problem: _Problem, theta, x0) -> EquilibriumResult:
         e = jnp.where(accept, e_try, e)
         if problem.self_contact:  # the pairs in contact at the new x
             cs = scs.after_step(sc, cs, x, pairs, accept)
-            grad_fn = jax.grad(lambda y: _energy(problem, y, theta, cs.active))
+            grad_fn = grad_with(cs.active)
         g_new = jnp.where(accept, grad_fn(x) * fmask, g)
         if st.krylov_forcing:  # Eisenstat-Walker's choice 2, safeguarded
             drop = jnp.vdot(g_new, g_new) / jnp.maximum(jnp.vdot(g, g), jnp.finfo(x0.dtype).tiny)
@@ -480,19 +489,6 @@ def check_equilibrium(result: EquilibriumResult, what: str = "equilibrium") -> E
 
 # ---------------------------------------------------------------------------------------------
 # the implicit step's friction (dynamics.py builds the step)
-
-
-def _friction_energy(colliders, x, x_prev, area, free, friction, eps):
-    """Lagged Coulomb friction as a smooth dissipation potential (IPC style): mu lambda_i
-    (sqrt(|u_T|^2 + eps^2) - eps), with the normal force lambda_i and the contact normal taken
-    at the start of the step and u_T the tangential displacement."""
-    pen = jax.lax.stop_gradient(mc.penetration(colliders, x_prev))
-    lam = colliders.stiffness * area * pen
-    n = jax.lax.stop_gradient(mc.contact_normals(colliders, x_prev))
-    u = x - x_prev
-    ut = u - jnp.sum(u * n, axis=-1, keepdims=True) * n
-    slide = jnp.sqrt(jnp.sum(ut * ut, axis=-1) + eps * eps) - eps
-    return jnp.sum(jnp.where(free & (pen > 0), friction * colliders.friction * lam * slide, 0.0))
 
 
 _FRICTION_EPS = 1e-5  # m: tangential slip below which friction is smoothed (static regime)
