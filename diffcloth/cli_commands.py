@@ -225,10 +225,10 @@ def _simulate(args) -> int:
         if not ok.all():
             out.discard()
             bad = int(np.argmin(ok))
-            x_ok = state.x if bad == 0 else traj.x[bad - 1]
+            ok_x, ok_v = (state.x, state.v) if bad == 0 else (traj.x[bad - 1], traj.v[bad - 1])
             _err(
                 f"unstable: the cloth blew up (non-finite or exploded state) at frame "
-                f"{done + bad}; {ADVICE}{failure_note(net, sim, x_ok)}"
+                f"{done + bad}; {ADVICE}{failure_note(net, sim, ok_x, ok_v)}"
             )
             return 1
         state, bods = last(traj), last(body_traj)
@@ -425,9 +425,9 @@ def _render(args) -> int:
             return 1
         from diffcloth.physics.grid_contact import failure_note
 
-        x_ok = scene.state.x if bad == 0 else traj.x[bad - 1]
+        last = scene.state if bad == 0 else jax.tree_util.tree_map(lambda a: a[bad - 1], traj)
         _err(f"unstable: the simulation blew up (non-finite or exploded state) at frame {bad}; "
-             f"{ADVICE}{failure_note(scene.net, scene.sim, x_ok)}")  # fmt: skip
+             f"{ADVICE}{failure_note(scene.net, scene.sim, last.x, last.v)}")  # fmt: skip
         return 1
     print(f"  simulated in {time.perf_counter() - t0:.1f} s", flush=True)
     xs, spheres = pipeline.rendered_states(scene, traj, bodies)

@@ -119,7 +119,7 @@ def make_grid_self_contact(
     *,
     stiffness: float = 1e5,
     friction: float = 1.0,
-    capacity: int = 8,
+    capacity: int = 16,
     step_fraction: float = 0.1,
     net=None,
     dtype=None,
@@ -238,29 +238,32 @@ def filter_step(pairs: Pairs, x, x1, v1, motion, free, h):
     return x2, v2
 
 
-def check_overflow(net, sim, x) -> None:
+def check_overflow(net, sim, x, v=None) -> None:
     """Eager: raise ValueError naming `[sim] self_contact_capacity` when the grid's broad phase
-    overflows at positions x (e.g. the last finite frame of a failed rollout); nothing when
-    self-contact is off.
-    Shapes: x (rows, cols, 3) m."""
+    overflows at positions x and velocities v (None: at rest), e.g. the last finite frame of a
+    failed rollout; nothing when self-contact is off or x is not finite.
+    Shapes: x, v (rows, cols, 3) m, m/s."""
     sc = getattr(sim, "self_contact", None)
     if sc is None or not np.all(np.isfinite(np.asarray(x))):
         return
     x = jnp.asarray(x).reshape(-1, 3)
-    motion = jnp.full(x.shape[:1], max_step(net, sc), x.dtype)
-    pairs = jax.jit(contact_pairs)(net, sc, x, motion)
+    v = jnp.zeros_like(x) if v is None else jnp.asarray(v, x.dtype).reshape(-1, 3)
+    v = jnp.where(jnp.isfinite(v), v, 0.0)
+    h = sim.dt / sim.num_substeps
+    accel = jnp.sqrt(jnp.sum(sim.gravity**2)) if sim.integrator == "implicit" else 0.0
+    pairs = jax.jit(contact_pairs)(net, sc, x, reach(net, sc, v, h, accel))
     check_pairs(pairs, "grid self-contact")
 
 
-def failure_note(net, sim, x) -> str:
+def failure_note(net, sim, x, v=None) -> str:
     """Eager: what to add to a failed grid rollout's message: "" with self-contact off; the
-    overflow (naming `[sim] self_contact_capacity`) when the broad phase overflows at x, the
-    last finite frame's positions; else a hint that an overflow within the frame is possible.
-    Shapes: x (rows, cols, 3) m -> str."""
+    overflow (naming `[sim] self_contact_capacity`) when the broad phase overflows at x, v, the
+    last finite frame's state; else a hint that an overflow within the frame is possible.
+    Shapes: x, v (rows, cols, 3) m, m/s -> str."""
     if getattr(sim, "self_contact", None) is None:
         return ""
     try:
-        check_overflow(net, sim, x)
+        check_overflow(net, sim, x, v)
     except ValueError as err:
         return f"; {err}"
     return (

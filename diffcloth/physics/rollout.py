@@ -370,7 +370,8 @@ def checked_rollout(
     if first is not None:
         from diffcloth.physics.grid_contact import failure_note
 
-        note = failure_note(net, sim, state.x if first == 0 else traj.x[first - 1])
+        last = state if first == 0 else ClothState(x=traj.x[first - 1], v=traj.v[first - 1])
+        note = failure_note(net, sim, last.x, last.v)
         raise UnstableSimulationError(
             f"unstable: the cloth state became non-finite or blew up at frame {first}; {ADVICE} "
             f"(substep {float(np.asarray(sim.dt)) / sim.num_substeps:.3g} s, explicit estimate "
