@@ -100,13 +100,13 @@ def mollifier(cloth, x, pairs: Pairs):
 
 def bucketed(mask, fn):
     """fn(rows (s,) int, live (s,) bool) on the rows where mask (P,) holds, compacted into the
-    smallest static size s of P/64, P/8 and P (at least 256) that holds them all: a
+    smallest static size s of 0, P/64, P/8 and P (at least 256) that holds them all: a
     `lax.switch`, so only that size is computed (the pair arrays are padded to the broad
     phase's capacity; the pairs in contact are usually a small part of it). fn's outputs must
     have the same shapes for every s.
     Shapes: mask (P,) -> fn's outputs."""
     big = mask.shape[0]
-    sizes = sorted({min(big, max(256, big // 8**k)) for k in range(3)})
+    sizes = sorted({0} | {min(big, max(256, big // 8**k)) for k in range(3)})
     count = jnp.sum(mask.astype(jnp.int32))
 
     def branch(s):
