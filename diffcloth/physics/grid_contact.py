@@ -7,11 +7,13 @@ cloth's broad phase and distances (`mesh.selfcontact.find_pairs`, `gap`) run on 
 net under jit with a fixed capacity: vertex-triangle and edge-edge pairs, pairs that share a
 vertex excluded. Each substep, from its start positions x:
 
-1. Pairs: every pair closer than d_hat + r_a + r_b, r the largest reach of each side's points,
-   r_k = 1.5 h |v_k| + M (v_k the velocity the substep drifts with; the implicit integrator
-   adds h^2 |g|, as its v_k is the start velocity; M =
-   `SelfContact.step_fraction` x the mean rest structural length): no point moves further than
-   its reach in the substep.
+1. Pairs: each point's reach in the substep is r_k = 1.5 h |v_k| + M (v_k the velocity the
+   substep drifts with; the implicit integrator adds h^2 |g|, as its v_k is the start velocity;
+   M = `SelfContact.step_fraction` x the mean rest structural length). The broad phase finds
+   every pair closer than d_hat + b_a + b_b at positions x_ref, b_k = r_k + 2 M each point's
+   budget (b of a side: its points' largest), and its pairs are kept (`PairCache`) until a
+   point could leave its budget: it runs again (lax.cond) when |x_k - x_ref,k| + r_k > b_k
+   for some k, so a resting net keeps its pairs for many substeps.
 2. Response (velocities, before the drift): each pair closer than d_hat (unsigned distance d,
    unit gap direction n, closest-point weights w_k, relative velocity u = sum_k w_k v_k) gets the
    normal impulse J = max(J_pen, s(d) (-u.n) / W): J_pen = h kappa A (d_hat - d)^2 / d_hat, a
@@ -25,13 +27,14 @@ vertex excluded. Each substep, from its start positions x:
    (`mesh.selfcontact_energy.mollifier`): nearly parallel edges, whose closest points jump,
    hand the response to the vertex-triangle pairs.
 3. Filter (positions, after the drift, the pins and the colliders): each free point's
-   displacement is shortened to at most min(r_k, 0.45 d_min), d_min the distance of the
-   closest pair (step 1) that contains it; a shortened point's velocity becomes its
-   displacement / h. Within a substep every point moves on a straight line, so a pair found in
-   step 1 keeps at least a tenth of its distance, and a pair not found (d >= d_hat + r_a + r_b)
-   stays apart: a net free of self-intersection at the start of a substep is free of it at its
-   end (pinned points are not shortened; the guarantee needs them to move less than 0.45 d per
-   substep towards the cloth).
+   displacement is shortened to at most min(r_k, 0.45 d_min), d_min the distance, at the
+   substep's start, of the closest kept pair that contains it (and it never leaves its budget
+   around x_ref); a shortened point's velocity becomes its displacement / h. Within a substep
+   every point moves on a straight line, so a kept pair keeps at least a tenth of its distance,
+   and a pair not kept (d >= d_hat + b_a + b_b at x_ref, each point within b of x_ref) stays
+   farther than d_hat: a net free of self-intersection at the start of a substep is free of it
+   at its end (pinned points are not shortened; the guarantee needs them to move less than
+   0.45 d per substep towards the cloth, and to stay within their budget).
 
 A broad phase overflow (more candidates than `SelfContact.capacity` allows) makes the substep's
 positions NaN: the frame fails, and `check_overflow` names `[sim] self_contact_capacity`.
@@ -58,6 +61,8 @@ from diffcloth.physics.mesh.selfcontact_energy import mollifier
 
 __all__ = [
     "GridTriangles",
+    "Hooks",
+    "PairCache",
     "check_overflow",
     "contact_pairs",
     "failure_note",
@@ -272,27 +277,69 @@ def failure_note(net, sim, x, v=None) -> str:
     )
 
 
-def planar_hooks(net, sc: SelfContact, material, mass, free, h, accel=0.0):
-    """The integrators' three self-contact stages on planar (3, rows, cols) arrays:
-    pairs(x, v) -> (Pairs, reach) (no gradient); respond(pairs, x, v) -> v (step 2);
-    bound(pairs, x, x1, v1) -> (x1, v1) (step 3). respond and bound are checkpointed (the pairs
-    are kept).
+class PairCache(NamedTuple):
+    """The pairs of the last broad phase and what they cover: pairs (Pairs), x_ref (n, 3) m, the
+    positions they were found at, and budget (n,) m, how far each node may move from x_ref
+    before they must be found again (a pair not among them was farther than d_hat plus its two
+    sides' budgets at x_ref)."""
+
+    pairs: Pairs
+    x_ref: jax.Array
+    budget: jax.Array
+
+
+class Hooks(NamedTuple):
+    """The integrators' self-contact stages (`planar_hooks`)."""
+
+    empty: object
+    refresh: object
+    respond: object
+    bound: object
+
+
+def planar_hooks(net, sc: SelfContact, material, mass, free, h, accel=0.0) -> Hooks:
+    """The integrators' self-contact stages on planar (3, rows, cols) arrays:
+    empty(x) -> PairCache that the first refresh replaces; refresh(cache, x, v) -> (cache,
+    reach (n,)): the broad phase again (lax.cond), with each node's budget its reach + 2 M, only
+    when a node could leave its budget in this substep (a resting net keeps its pairs for many
+    substeps); respond(cache, x, v) -> v (step 2); bound(cache, reach, x, x1, v1) -> (x1, v1)
+    (step 3, each node also kept within its budget of x_ref). respond and bound are
+    checkpointed.
     Shapes: mass, free (rows, cols); x, v (3, rows, cols) -> as described."""
     flat = lambda a: a.reshape(3, -1).T
     back = lambda a: a.T.reshape(3, net.rows, net.cols)
     free_f = free.reshape(-1)
     inv_mass = jnp.where(free_f, 1.0 / jnp.where(free_f, mass.reshape(-1), 1.0), 0.0)
+    skin = 2.0 * jax.lax.stop_gradient(max_step(net, sc))
+    ng = jax.lax.stop_gradient
 
-    def pairs(x, v):
-        motion = reach(net, sc, flat(v), h, accel)
-        return contact_pairs(net, sc, flat(x), motion), motion
+    def build(x, r):  # flat x (n, 3), reach r (n,)
+        budget = ng(r) + skin
+        return PairCache(contact_pairs(net, sc, ng(x), budget), ng(x), budget)
 
-    def react(p, x, v):
-        return back(respond(net, sc, p[0], flat(x), flat(v), inv_mass, material.friction, h))
+    def empty(x):
+        xf = ng(flat(x))
+        shapes = jax.eval_shape(lambda a: build(a, jnp.zeros(a.shape[:1], a.dtype)), xf)
+        zero = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+        return zero._replace(x_ref=xf, budget=jnp.full(xf.shape[:1], -1.0, xf.dtype))
 
-    def bound(p, x, x1, v1):
-        x2, v2 = filter_step(p[0], flat(x), flat(x1), flat(v1), p[1], free_f, h)
+    def refresh(cache, x, v):
+        xf = flat(x)
+        r = reach(net, sc, flat(v), h, accel)
+        moved = safe_norm(ng(xf) - cache.x_ref)
+        stale = jnp.any(moved + ng(r) > cache.budget)
+        return jax.lax.cond(stale, lambda: build(xf, r), lambda: cache), r
+
+    def react(cache, x, v):
+        p = cache.pairs
+        return back(respond(net, sc, p, flat(x), flat(v), inv_mass, material.friction, h))
+
+    def bound(cache, r, x, x1, v1):
+        xf = flat(x)
+        room = jnp.maximum(cache.budget - safe_norm(ng(xf) - cache.x_ref), 0.0)
+        cap = jnp.minimum(r, room)
+        x2, v2 = filter_step(cache.pairs, xf, flat(x1), flat(v1), cap, free_f, h)
         return back(x2), back(v2)
 
     ck = lambda f: jax.checkpoint(f, prevent_cse=False)
-    return pairs, ck(react), ck(bound)
+    return Hooks(empty, refresh, ck(react), ck(bound))

@@ -286,16 +286,18 @@ def step_with_contacts(
         # (x += h v, pins, colliders) and then kicks substep s. Each loop output then depends on the
         # force loop once (x and v computed in one body would make XLA evaluate the forces twice).
         # vk: the velocity before the last kick (the "impact" rule credits the kick's lift-off)
+        # with self-contact the carry also holds the pairs (`grid_contact.PairCache`); at s = 0
+        # they are found at x0 and kept
         def substep(carry, s):
-            x, v, vk, si, pi = carry
+            x, v, vk, si, pi = carry[:5]
             t = s.astype(dtype) * h
-            x1, v1, dsi, dpi = drift(x, v, t, vk)
+            x1, v1, dsi, dpi, *cache = drift(x, v, t, vk, *carry[5:])
             first = s == 0
             x1 = jnp.where(first, x, x1)
             v1 = jnp.where(first, v, v1)
             si = jnp.where(first, si, si + dsi)
             pi = jnp.where(first, pi, pi + dpi)
-            return (x1, kick(x1, v1), v1, si, pi), None
+            return (x1, kick(x1, v1), v1, si, pi, *cache), None
 
         v_init = to_planar(state.v)
         init = (x0, v_init, v_init, zeros_si, zeros_pi)
@@ -308,38 +310,43 @@ def step_with_contacts(
         # keep every intermediate of the force loop, so their whole substeps stay checkpointed.
         constrain_remat = jax.checkpoint(constrain, prevent_cse=False)
 
-        def drift(x, v, t, vk):  # x += h v, pins, colliders (and self-contact, when on)
+        def drift(x, v, t, vk, *cache):  # x += h v, pins, colliders (and self-contact)
             if contact is None:
                 return constrain_remat(x, x + h * v, v, t, vk)
-            p = contact[0](x, v)
-            v = contact[1](p, x, v)
+            c, r = contact.refresh(cache[0], x, v)
+            v = contact.respond(c, x, v)
             x1, v1, dsi, dpi = constrain_remat(x, x + h * v, v, t, vk)
-            return (*contact[2](p, x, x1, v1), dsi, dpi)
+            return (*contact.bound(c, r, x, x1, v1), dsi, dpi, c)
 
         if not hand_vjp(material):
             substep = jax.checkpoint(substep, prevent_cse=False)
-        (x, v, vk, si, pi), _ = jax.lax.scan(substep, init, jnp.arange(num))
+        if contact is not None:
+            init = (*init, contact.empty(x0))
+        (x, v, vk, si, pi, *cache), _ = jax.lax.scan(substep, init, jnp.arange(num))
         if contact is None:
             x, v, dsi, dpi = constrain_remat(x, x + h * v, v, num * h, vk)
         else:
-            x, v, dsi, dpi = drift(x, v, num * h, vk)
+            x, v, dsi, dpi, _ = drift(x, v, num * h, vk, *cache)
         si, pi = si + dsi, pi + dpi
     elif sim.integrator == "implicit":
 
         def substep(carry, s):
-            x, v, si, pi = carry
+            x, v, si, pi = carry[:4]
             t = (s + 1).astype(dtype) * h
             if contact is not None:
-                p = contact[0](x, v)
-                v = contact[1](p, x, v)
+                c, r = contact.refresh(carry[4], x, v)
+                v = contact.respond(c, x, v)
             x1, v1 = _implicit_substep(net, sim, material, x, v, mass, free, h, pin_v)
             x1, v1, dsi, dpi = constrain(x, x1, v1, t, v)
             if contact is not None:
-                x1, v1 = contact[2](p, x, x1, v1)
+                x1, v1 = contact.bound(c, r, x, x1, v1)
+                return (x1, v1, si + dsi, pi + dpi, c), None
             return (x1, v1, si + dsi, pi + dpi), None
 
         init = (x0, to_planar(state.v), zeros_si, zeros_pi)
-        (x, v, si, pi), _ = jax.lax.scan(substep, init, jnp.arange(num))
+        if contact is not None:
+            init = (*init, contact.empty(x0))
+        (x, v, si, pi, *_), _ = jax.lax.scan(substep, init, jnp.arange(num))
     else:
         raise ValueError(f"integrator: unknown {sim.integrator!r}")
     x, v = from_planar(x), from_planar(v)
