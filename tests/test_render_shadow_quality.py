@@ -164,20 +164,23 @@ def test_analytic_sky_under_a_cloth_square_matches_the_form_factor():
     np.testing.assert_allclose(top, 1.0)
 
 
-def test_fit_preset_looks_the_cloth_light_up_per_vertex_close_to_per_pixel():
+@pytest.mark.parametrize("side", [9, 17])
+def test_fit_preset_looks_the_cloth_light_up_per_vertex_close_to_per_pixel(side):
     """The "fit" preset's cloth visibility is looked up at the vertices and interpolated by the
     rasterizer: on a tessellated sheet half in a sphere's shadow it stays within a few per cent
     of the per-pixel lookup on average (it differs only across the shadow's edge), and both see
-    the shadow."""
+    the shadow. side 17: the tessellated grid has more vertex rows than the map has texels, so
+    the lookup runs on a coarse sub-grid, interpolated along the grid (`grid_coarse`)."""
     from diffcloth.render import lights as Lm
     from diffcloth.render.camera import make_camera
     from diffcloth.render.frame import surface_gbuffer
     from diffcloth.render.shadows import shadow_maps
     from diffcloth.surface import tessellate
 
-    x, z = np.meshgrid(np.linspace(-0.5, 0.5, 9), np.linspace(-0.5, 0.5, 9))
+    x, z = np.meshgrid(np.linspace(-0.5, 0.5, side), np.linspace(-0.5, 0.5, side))
     net = jnp.asarray(np.stack([x, 0.02 * np.sin(4 * x), z], -1), jnp.float32)
     surf = tessellate(net, 4)
+    assert (max(surf.grid_shape) > 32) == (side == 17)  # the map below has 32 texels a side
     lights = Lm.make_lights(directional=[((0.2, 1.0, 0.1), (1.0, 1.0, 1.0), 2.0)],
                             shadows=True, dtype=jnp.float32)  # fmt: skip
     sph = make_sphere([(0.15, 0.3, 0.0)], [0.15], dtype=jnp.float32)

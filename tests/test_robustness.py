@@ -111,7 +111,8 @@ import pytest
 
 from diffcloth.render import camera as C
 from diffcloth.render import lights as Lm
-from diffcloth.render.frame import _sphere_layer, render
+from diffcloth.render.frame import render
+from diffcloth.render.sphere_layer import _sphere_layer
 from diffcloth.shapes import Sphere
 from diffcloth.surface import collide_surface, tessellate
 

@@ -15,17 +15,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffcloth._math import materialize, safe_normalize
+from diffcloth.render import shadows as shadowlib
 from diffcloth.render import sky as skylib
 from diffcloth.render.boxes import BoxPoses, box_mesh, box_neighbors_np
-from diffcloth.render.camera import Camera, eye_position, pixel_rays, project
+from diffcloth.render.camera import Camera, eye_position, pixel_rays
 from diffcloth.render.fringe import fringe_depth, layer_in_front
+from diffcloth.render.layers import ray_cast_layers
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
-from diffcloth.render.shadows import ShadowMaps, layer_shadow_visibility, shadow_visibility
-from diffcloth.render.shadows import shadow_maps as build_shadow_maps
+from diffcloth.render.shadows import ShadowMaps, shadow_visibility
 from diffcloth.render.sky import SkyMaps, sky_visibility
-from diffcloth.render.sphere_layer import _sphere_layer
 from diffcloth.render.textures import Textures
 from diffcloth.shapes import Plane, Sphere
 
@@ -103,61 +103,6 @@ def _with_boxes(surface, boxes: BoxPoses):
     return combined, nb.astype(jnp.int32)
 
 
-def _plane_layer(
-    camera: Camera,
-    planes: Plane,
-    lights: Lights,
-    appearance: Appearance,
-    color,
-    shadows: ShadowMaps | None = None,
-    sky: SkyMaps | None = None,
-):
-    """Ray-cast planes (seen from their free side, up to the far plane): opaque Lambertian
-    RGBA (H, W, 4) (premultiplied; alpha 1 where a plane is hit) and view depth (H, W).
-
-    Colour = color * (appearance.ambient * ambient light + sum_l radiance_l max(N.L_l, 0) V_l),
-    V_l the shadow visibility; no specular (a matte ground). `sky`: ambient occlusion.
-    """
-    origins, dirs = pixel_rays(camera)
-    pl = planes.batched()
-    big = jnp.asarray(1e10, origins.dtype)
-
-    def one(normal, offset):
-        n = jnp.reshape(normal, (1, 1, 3))
-        side = jnp.sum(origins * n, axis=-1) - offset  # > 0: eye on the free side
-        nd = jnp.sum(dirs * n, axis=-1)
-        t = safe_div_neg(side, nd)
-        point = origins + t[..., None] * dirs
-        _, depth = project(point, camera)
-        hit = (side > 0) & (nd < 0) & (depth < camera.far)
-        return jnp.where(hit, depth, big), point
-
-    depth, point = jax.vmap(one)(pl.normal, pl.offset)  # (npl, H, W, ...)
-    nearest = jnp.argmin(depth, axis=0)
-    depth = jnp.take_along_axis(depth, nearest[None], axis=0)[0]
-    point = jnp.take_along_axis(point, nearest[None, ..., None], axis=0)[0]
-    normal = pl.normal[nearest]
-    hit = depth < big
-    point = jnp.where(hit[..., None], point, 0.0)
-    vis = layer_shadow_visibility(shadows, point, normal)
-    diffuse, _ = blinn_phong(normal, -dirs, point, lights, appearance, vis)
-    amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
-    if sky is not None:
-        amb = amb * skylib.layer_sky_visibility(sky, point, normal)[..., None]
-    rgb = jnp.reshape(jnp.asarray(color, point.dtype), (1, 1, 3)) * (amb + diffuse)
-    alpha = hit.astype(point.dtype)[..., None]
-    return jnp.concatenate([rgb * alpha, alpha], axis=-1), depth
-
-
-def safe_div_neg(side, nd):
-    """Ray parameter t = side / -nd of a plane hit; 0 where the ray is parallel.
-
-    Shapes: side (...), nd (...) -> (...) elementwise.
-    """
-    ok = nd < 0
-    return jnp.where(ok, side / jnp.where(ok, -nd, 1.0), 0.0)
-
-
 def _occluder_mesh(surface, occluders):
     """(positions, faces, neighbors) of the cloth plus extra occluder triangles (boxes...)."""
     pos, faces = surface.positions, jnp.asarray(surface.faces).astype(jnp.int32)
@@ -187,7 +132,7 @@ def frame_shadow_maps(surface, lights: Lights, *, spheres=None, occluders=None, 
     if not lights.casts_shadows:
         return None
     mesh = _occluder_mesh(surface, occluders)
-    return build_shadow_maps(lights, mesh=mesh, spheres=spheres, **options)
+    return shadowlib.shadow_maps(lights, mesh=mesh, spheres=spheres, **options)
 
 
 def _object_mask(surface, camera: Camera):
@@ -251,9 +196,9 @@ def surface_gbuffer(
     if (vsky := skylib.vertex_sky_attribute(sky, pos, nrm, grid)) is not None:
         attrs["sky"] = vsky  # ambient occlusion per vertex, both sides, interpolated
     per_vertex = shadows is not None and shadows.per_vertex and boxes is None  # boxes: per pixel
-    vvis = shadow_visibility(shadows, pos, nrm) if per_vertex or shading == "gouraud" else None
+    vvis = shadow_visibility(shadows, pos, nrm) if shading == "gouraud" else None
     if per_vertex:  # (n, nl), the same for both sides, interpolated by the rasterizer
-        attrs["light_visibility"] = vvis
+        attrs["light_visibility"] = shadowlib.vertex_shadow_visibility(shadows, pos, nrm, grid)
     if shading == "gouraud":
         # per-vertex lighting, for both sides: from the eye point (perspective) or the common
         # direction of the parallel rays (orthographic, oblique, axonometric)
@@ -464,8 +409,12 @@ def render(
     # soft test (a hard one flipped whole fringe pixels of cloth resting on a sphere as it moved:
     # a jump in the loss)
     depth = buf.depth
-    if spheres is not None and draw_spheres:
-        sphere_rgba, sphere_depth = _sphere_layer(camera, spheres, lights, appearance, maps, sky)
+    sphere_layer, plane_layer = ray_cast_layers(
+        camera, lights, appearance, spheres=spheres if draw_spheres else None, planes=planes,
+        plane_color=plane_color, shadows=maps, sky=sky,
+    )  # fmt: skip
+    if sphere_layer is not None:
+        sphere_rgba, sphere_depth = sphere_layer
         # weight of the sphere in front; cloth resting on a sphere wins ties
         pixel = 2.0 / (camera.height * camera.projection[1, 1])
         front = layer_in_front(
@@ -480,9 +429,7 @@ def render(
         depth = jnp.minimum(depth, sphere_depth)
     if planes is not None:
         depth = jnp.minimum(depth, fringe_depth(buf.surface_id >= 0, buf.depth))
-        plane_rgba, plane_depth = _plane_layer(
-            camera, planes, lights, appearance, plane_color, maps, sky
-        )
+        plane_rgba, plane_depth = plane_layer
         front = (plane_depth < depth)[..., None]
         cloth_mask = jnp.where(front[..., 0], (1.0 - plane_rgba[..., 3]) * cloth_mask, cloth_mask)
         img = jnp.where(

@@ -30,6 +30,7 @@ nothing here runs (images bitwise equal to the unshadowed renderer).
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -45,6 +46,7 @@ from diffcloth._math import (
     safe_sqrt,
 )
 from diffcloth.render.camera import Camera, look_at, orthographic, perspective
+from diffcloth.render.grid_coarse import on_coarse_grid
 from diffcloth.render.lights import Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize
 from diffcloth.shapes import Sphere
@@ -447,6 +449,19 @@ def shadow_visibility(maps: ShadowMaps | None, points, normals, *, taps: int | N
     return jnp.moveaxis(full, 0, -1).reshape(*batch, nl)
 
 
+def vertex_shadow_visibility(maps: ShadowMaps | None, points, normals, grid_shape=None):
+    """`shadow_visibility` at a surface's vertices (the `maps.per_vertex` lookup, interpolated
+    by the rasterizer). With the (vrows, vcols) `grid_shape` of a tessellated grid it is looked
+    up on at most `maps.size` vertex rows and columns (about one a texel: the map holds no finer
+    detail) and interpolated linearly along the grid to the others (`grid_coarse`).
+
+    Shapes: points (n, 3) m, normals (n, 3) -> (n, nl); None when maps is None.
+    """
+    if maps is None:
+        return None
+    return on_coarse_grid(partial(shadow_visibility, maps), points, normals, grid_shape, maps.size)
+
+
 def layer_shadow_visibility(maps: ShadowMaps | None, points, normals):
     """`shadow_visibility` of a ray-cast layer (spheres, planes): per pixel, or with
     `maps.layer_stride` f > 1 (and the image's sides multiples of f) once per f x f pixel block,
@@ -454,15 +469,16 @@ def layer_shadow_visibility(maps: ShadowMaps | None, points, normals):
     its light map has about one texel per two pixels, so the lookup has no finer detail; one
     quarter of the receivers). Continuous in the receivers, so in the parameters.
 
-    Shapes: points (H, W, 3) m, normals (H, W, 3) -> (H, W, nl); None when maps is None.
+    Shapes: points (..., H, W, 3) m, normals (..., H, W, 3) -> (..., H, W, nl); None when maps
+    is None.
     """
     f = 1 if maps is None else maps.layer_stride
-    H, W = points.shape[:2]
+    *lead, H, W = points.shape[:-1]
     if f <= 1 or H % f or W % f:
         return shadow_visibility(maps, points, normals)
 
     def block_mean(a):
-        return jnp.mean(a.reshape(H // f, f, W // f, f, 3), axis=(1, 3))
+        return jnp.mean(a.reshape(*lead, H // f, f, W // f, f, 3), axis=(-4, -2))
 
     low = shadow_visibility(maps, block_mean(points), block_mean(normals))
-    return jax.image.resize(low, (H, W, low.shape[-1]), "linear")
+    return jax.image.resize(low, (*lead, H, W, low.shape[-1]), "linear")

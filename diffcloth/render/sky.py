@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffcloth._math import fast_acos, fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
+from diffcloth.render.grid_coarse import on_coarse_grid
 from diffcloth.render.lights import SOFTNESS_RANGE, Lights
 from diffcloth.render.shadows import ShadowMaps, shadow_maps, shadow_visibility
 from diffcloth.render.sky_discs import disc_occlusion, mesh_discs, plane_openness
@@ -215,40 +216,23 @@ def sky_visibility(sky: SkyMaps | None, points, normals):
     return jnp.clip(a, 0.0, 1.0).reshape(batch)
 
 
-def _coarse_axis(n: int):
-    """Every s-th of n grid lines (and the last), s leaving at most COARSE_GRID of them, and the
-    (n, n') matrix interpolating linearly from them back onto all n."""
-    stride = max(-(-(n - 1) // (COARSE_GRID - 1)), 1)
-    idx = np.unique(np.r_[0:n:stride, n - 1])
-    eye = np.eye(len(idx))
-    w = np.stack([np.interp(np.arange(n), idx, eye[k]) for k in range(len(idx))], axis=1)
-    return idx, w
-
-
 def vertex_sky_attribute(sky: SkyMaps | None, points, normals, grid_shape=None):
     """A per-vertex attribute (n, 2): A of the front (normal) and back side of each vertex, for
     a `sky.per_vertex` SkyMaps; None otherwise (A is then evaluated per pixel). With the
     (vrows, vcols) `grid_shape` of a tessellated grid, A is evaluated on at most COARSE_GRID
-    vertex rows and columns of it and interpolated linearly along the grid to the others.
+    vertex rows and columns of it and interpolated linearly along the grid to the others
+    (`grid_coarse.on_coarse_grid`).
 
     Shapes: points (n, 3) m, normals (n, 3) -> (n, 2).
     """
     if sky is None or not sky.per_vertex:
         return None
 
-    def both(p, n):
-        return jnp.stack([sky_visibility(sky, p, n), sky_visibility(sky, p, -n)], -1)
+    def both(p, n):  # one lookup for both sides
+        a = sky_visibility(sky, jnp.stack([p, p]), jnp.stack([n, -n]))
+        return jnp.moveaxis(a, 0, -1)
 
-    if grid_shape is None or points.shape[0] != grid_shape[0] * grid_shape[1]:
-        return both(points, normals)
-    R, C = int(grid_shape[0]), int(grid_shape[1])
-    (rows, wr), (cols, wc) = _coarse_axis(R), _coarse_axis(C)
-    if len(rows) == R and len(cols) == C:
-        return both(points, normals)
-    pick = lambda x: x.reshape(R, C, 3)[rows][:, cols].reshape(-1, 3)  # noqa: E731
-    a = both(pick(points), pick(normals)).reshape(len(rows), len(cols), 2)
-    a = jnp.einsum("ri,ijk->rjk", jnp.asarray(wr, a.dtype), a)
-    return jnp.einsum("cj,rjk->rck", jnp.asarray(wc, a.dtype), a).reshape(R * C, 2)
+    return on_coarse_grid(both, points, normals, grid_shape, COARSE_GRID)
 
 
 def pixel_sky_visibility(sky: SkyMaps | None, attributes: dict, points, normals, back):
@@ -270,15 +254,16 @@ def layer_sky_visibility(sky: SkyMaps | None, points, normals):
     at every f-th pixel of every f-th row, bilinearly upsampled (A is low-frequency; continuous
     in the receivers, so in the parameters, either way).
 
-    Shapes: points (H, W, 3) m, normals (H, W, 3) -> (H, W); None when sky is None.
+    Shapes: points (..., H, W, 3) m, normals (..., H, W, 3) -> (..., H, W); None when sky is
+    None.
     """
     f = 1 if sky is None else sky.layer_stride
     if f <= 1:
         return sky_visibility(sky, points, normals)
-    H, W = points.shape[:2]
+    *lead, H, W = points.shape[:-1]
     o = f // 2
-    low = sky_visibility(sky, points[o::f, o::f], normals[o::f, o::f])
-    return jax.image.resize(low, (H, W), "linear")
+    low = sky_visibility(sky, points[..., o::f, o::f, :], normals[..., o::f, o::f, :])
+    return jax.image.resize(low, (*lead, H, W), "linear")
 
 
 def sphere_form_factor(points, normals, spheres: Sphere):

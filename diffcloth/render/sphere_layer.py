@@ -27,15 +27,9 @@ def _spacing(a):
     )
 
 
-def _sphere_layer(
-    camera: Camera,
-    spheres: Sphere,
-    lights: Lights,
-    appearance: Appearance,
-    shadows: ShadowMaps | None = None,
-    sky: SkyMaps | None = None,
-):
-    """Ray-cast spheres: premultiplied RGBA (H, W, 4) with antialiased rims, and view depth (H, W).
+def sphere_geometry(camera: Camera, spheres: Sphere):
+    """Ray-cast spheres' nearest hit per pixel: coverage alpha (H, W) with antialiased rims,
+    view depth (H, W) (1e10 where none), point (H, W, 3) m and unit normal (H, W, 3).
 
     Coverage of a pixel is clip((r - d) / footprint + 1/2, 0, 1) with d the distance from the
     sphere centre to the pixel's ray and footprint the pixel's width at that depth, so the rim is
@@ -78,12 +72,37 @@ def _sphere_layer(
         depth = jnp.take_along_axis(depth, nearest, axis=0)[0]
         point = jnp.take_along_axis(point, nearest[..., None], axis=0)[0]
         normal = jnp.take_along_axis(normal, nearest[..., None], axis=0)[0]
-    vis = layer_shadow_visibility(shadows, point, normal)
+    return alpha, depth, point, normal
+
+
+def sphere_shade(camera: Camera, geometry, lights: Lights, appearance: Appearance, vis, sky_vis):
+    """Shade `sphere_geometry`'s layer: premultiplied RGBA (H, W, 4) and view depth (H, W).
+
+    Shapes: vis (H, W, nl) light visibility or None, sky_vis (H, W) ambient visibility or None.
+    """
+    alpha, depth, point, normal = geometry
+    dirs = pixel_rays(camera)[1]
     diffuse, specular = blinn_phong(normal, -dirs, point, lights, appearance, vis)
     amb = jnp.reshape(appearance.ambient * lights.ambient, (1, 1, 3))
-    if sky is not None:  # ambient occlusion
-        amb = amb * layer_sky_visibility(sky, point, normal)[..., None]
+    if sky_vis is not None:  # ambient occlusion
+        amb = amb * sky_vis[..., None]
     albedo = jnp.reshape(appearance.sphere_color, (1, 1, 3))
     color = albedo * (amb + diffuse) + jnp.reshape(appearance.specular, (1, 1, 3)) * specular
     rgba = jnp.concatenate([color * alpha[..., None], alpha[..., None]], axis=-1)
     return rgba, depth
+
+
+def _sphere_layer(
+    camera: Camera,
+    spheres: Sphere,
+    lights: Lights,
+    appearance: Appearance,
+    shadows: ShadowMaps | None = None,
+    sky: SkyMaps | None = None,
+):
+    """Ray-cast spheres alone: premultiplied RGBA (H, W, 4), view depth (H, W)."""
+    geometry = sphere_geometry(camera, spheres)
+    _, _, point, normal = geometry
+    vis = layer_shadow_visibility(shadows, point, normal)
+    sky_vis = layer_sky_visibility(sky, point, normal)
+    return sphere_shade(camera, geometry, lights, appearance, vis, sky_vis)
