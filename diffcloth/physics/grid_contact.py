@@ -11,7 +11,8 @@ vertex excluded. Each substep, from its start positions x:
    substep drifts with; the implicit integrator adds h^2 |g|, as its v_k is the start velocity;
    M = `SelfContact.step_fraction` x the mean rest structural length). The broad phase finds
    every pair closer than d_hat + b_a + b_b at positions x_ref, b_k = r_k + 2 M each point's
-   budget (b of a side: its points' largest), and its pairs are kept (`PairCache`) until a
+   budget (b of a side: its points' largest; r_k alone where the wider search overflows the
+   capacity), and its pairs are kept (`PairCache`) until a
    point could leave its budget: it runs again (lax.cond) when |x_k - x_ref,k| + r_k > b_k
    for some k, so a resting net keeps its pairs for many substeps.
 2. Response (velocities, before the drift): each pair closer than d_hat (unsigned distance d,
@@ -300,11 +301,11 @@ class Hooks(NamedTuple):
 def planar_hooks(net, sc: SelfContact, material, mass, free, h, accel=0.0) -> Hooks:
     """The integrators' self-contact stages on planar (3, rows, cols) arrays:
     empty(x) -> PairCache that the first refresh replaces; refresh(cache, x, v) -> (cache,
-    reach (n,)): the broad phase again (lax.cond), with each node's budget its reach + 2 M, only
-    when a node could leave its budget in this substep (a resting net keeps its pairs for many
-    substeps); respond(cache, x, v) -> v (step 2); bound(cache, reach, x, x1, v1) -> (x1, v1)
-    (step 3, each node also kept within its budget of x_ref). respond and bound are
-    checkpointed.
+    reach (n,)): the broad phase again (lax.cond), with each node's budget its reach + 2 M (its
+    reach alone when that overflows the capacity), only when a node could leave its budget in
+    this substep (a resting net keeps its pairs for many substeps); respond(cache, x, v) -> v
+    (step 2); bound(cache, reach, x, x1, v1) -> (x1, v1) (step 3, each node also kept within
+    its budget of x_ref). respond and bound are checkpointed.
     Shapes: mass, free (rows, cols); x, v (3, rows, cols) -> as described."""
     flat = lambda a: a.reshape(3, -1).T
     back = lambda a: a.T.reshape(3, net.rows, net.cols)
@@ -313,13 +314,16 @@ def planar_hooks(net, sc: SelfContact, material, mass, free, h, accel=0.0) -> Ho
     skin = 2.0 * jax.lax.stop_gradient(max_step(net, sc))
     ng = jax.lax.stop_gradient
 
-    def build(x, r):  # flat x (n, 3), reach r (n,)
-        budget = ng(r) + skin
+    def find(x, budget):
         return PairCache(contact_pairs(net, sc, ng(x), budget), ng(x), budget)
+
+    def build(x, r):  # flat x (n, 3), reach r (n,); without the skin if that overflows
+        wide = find(x, ng(r) + skin)
+        return jax.lax.cond(wide.pairs.overflow, lambda: find(x, ng(r)), lambda: wide)
 
     def empty(x):
         xf = ng(flat(x))
-        shapes = jax.eval_shape(lambda a: build(a, jnp.zeros(a.shape[:1], a.dtype)), xf)
+        shapes = jax.eval_shape(lambda a: find(a, jnp.zeros(a.shape[:1], a.dtype)), xf)
         zero = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
         return zero._replace(x_ref=xf, budget=jnp.full(xf.shape[:1], -1.0, xf.dtype))
 
