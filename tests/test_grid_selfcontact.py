@@ -134,11 +134,22 @@ def test_impulse_stops_the_approach_and_friction_is_coulomb():
 
 
 def test_overflow_is_reported_with_the_setting_to_raise():
+    """The broad phase's overflow flag, and the note a failed rollout gets (`checked_rollout`,
+    `diffcloth simulate` / `render`; the CLI run is in the config test)."""
     sc = gc.make_grid_self_contact(THICK, net=NET, capacity=1)
-    with pytest.raises(physics.UnstableSimulationError, match=r"self_contact_capacity"):
-        physics.checked_rollout(NET, sim_with(sc), MAT, start(), num_frames=1)
-    pairs = gc.contact_pairs(NET, sc, X0.reshape(-1, 3), jnp.full(NET.rows * NET.cols, 0.01))
+    pairs = jax.jit(gc.contact_pairs)(
+        NET, sc, X0.reshape(-1, 3), jnp.full(NET.rows * NET.cols, 0.01)
+    )
     assert bool(pairs.overflow)
+    with pytest.raises(ValueError, match=r"self_contact_capacity"):
+        gc.check_overflow(NET, sim_with(sc), X0)
+    assert "raise SelfContact.capacity ([sim] self_contact_capacity)" in gc.failure_note(
+        NET, sim_with(sc), X0
+    )
+    fits = sim_with(gc.make_grid_self_contact(THICK, net=NET))
+    gc.check_overflow(NET, fits, X0)  # capacity 16: no overflow at rest
+    assert "self_contact_capacity" in gc.failure_note(NET, fits, X0)  # the in-frame hint
+    assert gc.failure_note(NET, sim_with(None), X0) == ""
 
 
 GRID_TOML = """
