@@ -63,6 +63,25 @@ def timed(fn, *args, repeats: int = 7, warmup: int = 1) -> Timing:
     return Timing(float(np.median(times)), float(np.min(times)), len(times))
 
 
+def timed_alternating(calls: dict, repeats: int = 7, warmup: int = 1) -> dict:
+    """`timed` for several calls {name: (fn, args)} in one loop: each round calls every one once,
+    the order reversed every other round, so a change in the machine's load during the run
+    reaches all of them alike (the figure to take ratios of on a shared machine).
+    Returns {name: Timing}."""
+    for fn, args in calls.values():
+        for _ in range(warmup):
+            _block(fn(*args))
+    names = list(calls)
+    times = {n: [] for n in names}
+    for r in range(max(1, repeats)):
+        for n in names if r % 2 == 0 else names[::-1]:
+            fn, args = calls[n]
+            t = time.perf_counter()
+            _block(fn(*args))
+            times[n].append(time.perf_counter() - t)
+    return {n: Timing(float(np.median(v)), float(np.min(v)), len(v)) for n, v in times.items()}
+
+
 def compile_and_run(fn, *args) -> float:
     """Wall time of the first call (trace + compile + one run), s."""
     t = time.perf_counter()

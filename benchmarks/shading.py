@@ -21,7 +21,9 @@ the control net (geometry: rasterizer and shadow-map gradients), the lights and 
 Per size: "shadows": false, then shadows on the light with --ratio-ao sky directions (default 8)
 at shadow_quality "fit" ("shadow_ratio" lines: fwd_ratio and grad_ratio = shadowed / unshadowed,
 same process; *_min_ratio: of the minimum times), and with --ratio-full also at "full" (256^2
-maps, 32 directions: slow).
+maps, 32 directions: slow). All cases of a size are timed in one alternating loop (each round
+calls every one once, the order reversed every other round: "timing": "alternating"), so a
+change of the shared machine's load reaches the shadowed and the unshadowed call alike.
 
 Lines are appended to --out (default benchmarks/results/shading.jsonl; "-": stdout only), after
 a "meta" line.
@@ -38,7 +40,7 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _timing import emit, meta, timed
+from _timing import emit, meta, timed, timed_alternating
 
 from diffcloth.render import lights as Lm
 from diffcloth.render import textures as T
@@ -222,7 +224,7 @@ def ratio_cases(args, spheres, device):
             (0.9, 0.9, 1.6), (0.0, 0.0, 0.0), (0, 1, 0), width=size, height=size, fov_y=40.0
         )
         weights = jnp.asarray(np.random.default_rng(0).uniform(size=(size, size, 4)), jnp.float32)
-        base = None
+        rows, calls = {}, {}
         for quality, ao in cases:
             lights = Lm.make_lights(
                 directional=[((0.3, 1.0, 0.6), (1.0, 1.0, 1.0), 1.0)],
@@ -246,7 +248,7 @@ def ratio_cases(args, spheres, device):
             def render_loss(params, render_fn=render_fn, weights=weights):
                 return jnp.sum(weights * render_fn(*params))
 
-            row = {
+            rows[quality] = {
                 "bench": "shading",
                 "mode": "phong",
                 "case": "shadow_ratio",
@@ -256,16 +258,22 @@ def ratio_cases(args, spheres, device):
                 "shadows": quality != "none",
                 "shadow_quality": quality,
                 "ambient_occlusion": ao,
+                "timing": "alternating",
             }
-            # median and minimum: on the shared machine the minimum is the steadier figure
-            t = timed(jax.jit(render_fn), net, lights, app, repeats=args.repeats)
-            row["render_fwd_ms"], row["render_fwd_min_ms"] = t.median_ms, t.min_ms
-            g = jax.jit(jax.value_and_grad(render_loss))
-            t = timed(g, (net, lights, app), repeats=args.repeats)
-            row["render_grad_ms"], row["render_grad_min_ms"] = t.median_ms, t.min_ms
-            if base is None:
-                base = row
-            else:
+            calls[("fwd", quality)] = (jax.jit(render_fn), (net, lights, app))
+            calls[("grad", quality)] = (
+                jax.jit(jax.value_and_grad(render_loss)),
+                ((net, lights, app),),
+            )
+        # every case's forward and gradient timed in one alternating loop (same load for all);
+        # median and minimum: on the shared machine the minimum is the steadier figure
+        times = timed_alternating(calls, repeats=args.repeats)
+        base = rows["none"]
+        for quality, row in rows.items():
+            for k in ("fwd", "grad"):
+                t = times[(k, quality)]
+                row[f"render_{k}_ms"], row[f"render_{k}_min_ms"] = t.median_ms, t.min_ms
+            if row is not base:
                 for k in ("fwd", "grad", "fwd_min", "grad_min"):
                     key = f"render_{k}_ms"
                     row[f"{k}_ratio"] = round(row[key] / base[key], 2)

@@ -160,12 +160,16 @@ def surface_gbuffer(
     triangle_mask=None,
     sky: SkyMaps | None = None,
     batch_axes: tuple = (),
+    vertex_light=None,
+    vertex_sky=None,
 ):
     """Rasterize a Surface into the shader's per-pixel inputs.
 
     shadows: optional `shadows.shadow_maps` output: fills `visibility` per pixel (per vertex,
     interpolated, with `shadows.per_vertex` and no boxes; the Gouraud vertices' lighting too).
     sky: optional `sky.sky_maps` output: fills `ambient_visibility` (ambient occlusion).
+    vertex_light (n, nl), vertex_sky (n, 2): those per-vertex values when already looked up
+    (`layers.ray_cast_layers`); computed here when None.
 
     Returns:
       (ShadingBuffer, raster GBuffer (ids, depth, crossings for `antialias`), eye vectors (H, W, 3)
@@ -193,12 +197,16 @@ def surface_gbuffer(
         "uv": surface.uv,
     }
     grid = getattr(surface, "grid_shape", None)
-    if (vsky := skylib.vertex_sky_attribute(sky, pos, nrm, grid)) is not None:
-        attrs["sky"] = vsky  # ambient occlusion per vertex, both sides, interpolated
+    if vertex_sky is None:
+        vertex_sky = skylib.vertex_sky_attribute(sky, pos, nrm, grid)
+    if vertex_sky is not None:
+        attrs["sky"] = vertex_sky  # ambient occlusion per vertex, both sides, interpolated
     per_vertex = shadows is not None and shadows.per_vertex and boxes is None  # boxes: per pixel
     vvis = shadow_visibility(shadows, pos, nrm) if shading == "gouraud" else None
     if per_vertex:  # (n, nl), the same for both sides, interpolated by the rasterizer
-        attrs["light_visibility"] = shadowlib.vertex_shadow_visibility(shadows, pos, nrm, grid)
+        if vertex_light is None:
+            vertex_light = shadowlib.vertex_shadow_visibility(shadows, pos, nrm, grid)
+        attrs["light_visibility"] = vertex_light
     if shading == "gouraud":
         # per-vertex lighting, for both sides: from the eye point (perspective) or the common
         # direction of the parallel rays (orthographic, oblique, axonometric)
@@ -352,11 +360,20 @@ def render(
         )  # fmt: skip
         maps = new_maps if maps is None else maps
         sky = new_sky if sky is None else sky
+    # the ray-cast layers and, without boxes, the cloth's per-vertex lookups: one of each kind
+    grid = getattr(surface, "grid_shape", None)
+    cloth = None if boxes is not None else (surface.positions, surface.normals, grid)
+    layers = ray_cast_layers(
+        camera, lights, appearance, spheres=spheres if draw_spheres else None, planes=planes,
+        plane_color=plane_color, shadows=maps, sky=sky, cloth=cloth,
+    )  # fmt: skip
     gb, buf, eye_rays = surface_gbuffer(
         surface,
         camera,
         lights,
         appearance,
+        vertex_light=layers.vertex_light,
+        vertex_sky=layers.vertex_sky,
         shading=shading,
         two_sided=two_sided,
         cull_backfaces=cull_backfaces,
@@ -409,12 +426,8 @@ def render(
     # soft test (a hard one flipped whole fringe pixels of cloth resting on a sphere as it moved:
     # a jump in the loss)
     depth = buf.depth
-    sphere_layer, plane_layer = ray_cast_layers(
-        camera, lights, appearance, spheres=spheres if draw_spheres else None, planes=planes,
-        plane_color=plane_color, shadows=maps, sky=sky,
-    )  # fmt: skip
-    if sphere_layer is not None:
-        sphere_rgba, sphere_depth = sphere_layer
+    if layers.sphere is not None:
+        sphere_rgba, sphere_depth = layers.sphere
         # weight of the sphere in front; cloth resting on a sphere wins ties
         pixel = 2.0 / (camera.height * camera.projection[1, 1])
         front = layer_in_front(
@@ -429,7 +442,7 @@ def render(
         depth = jnp.minimum(depth, sphere_depth)
     if planes is not None:
         depth = jnp.minimum(depth, fringe_depth(buf.surface_id >= 0, buf.depth))
-        plane_rgba, plane_depth = plane_layer
+        plane_rgba, plane_depth = layers.plane
         front = (plane_depth < depth)[..., None]
         cloth_mask = jnp.where(front[..., 0], (1.0 - plane_rgba[..., 3]) * cloth_mask, cloth_mask)
         img = jnp.where(

@@ -27,6 +27,31 @@ def coarse_axis(n: int, lines: int):
     return idx, w
 
 
+def coarse_grid(points, normals, grid_shape, lines: int):
+    """The sub-grid receivers of `on_coarse_grid` and the map back: (points', normals', expand),
+    expand(values (m', k)) -> (n, k) interpolated along the grid (the identity when there is
+    no grid, grid_shape None or not matching, or the grid is already that coarse).
+
+    Shapes: points (n, 3) m, normals (n, 3) -> (m', 3), (m', 3), a function.
+    """
+    if grid_shape is None or points.shape[0] != grid_shape[0] * grid_shape[1]:
+        return points, normals, lambda a: a
+    R, C = int(grid_shape[0]), int(grid_shape[1])
+    (rows, wr), (cols, wc) = coarse_axis(R, lines), coarse_axis(C, lines)
+    if len(rows) == R and len(cols) == C:
+        return points, normals, lambda a: a
+
+    def pick(x):
+        return x.reshape(R, C, 3)[rows][:, cols].reshape(-1, 3)
+
+    def expand(a):
+        a = a.reshape(len(rows), len(cols), a.shape[-1])
+        a = jnp.einsum("ri,ijk->rjk", jnp.asarray(wr, a.dtype), a)
+        return jnp.einsum("cj,rjk->rck", jnp.asarray(wc, a.dtype), a).reshape(R * C, a.shape[-1])
+
+    return pick(points), pick(normals), expand
+
+
 def on_coarse_grid(fn, points, normals, grid_shape, lines: int):
     """fn(points, normals) -> (m, k) evaluated at most `lines` vertex rows and columns of a grid
     surface and interpolated along the grid to every vertex; fn at every vertex when there is no
@@ -35,17 +60,5 @@ def on_coarse_grid(fn, points, normals, grid_shape, lines: int):
     Shapes: points (n, 3) m, normals (n, 3), grid_shape (vrows, vcols) with n = vrows * vcols
     -> (n, k).
     """
-    if grid_shape is None or points.shape[0] != grid_shape[0] * grid_shape[1]:
-        return fn(points, normals)
-    R, C = int(grid_shape[0]), int(grid_shape[1])
-    (rows, wr), (cols, wc) = coarse_axis(R, lines), coarse_axis(C, lines)
-    if len(rows) == R and len(cols) == C:
-        return fn(points, normals)
-
-    def pick(x):
-        return x.reshape(R, C, 3)[rows][:, cols].reshape(-1, 3)
-
-    a = fn(pick(points), pick(normals))
-    a = a.reshape(len(rows), len(cols), a.shape[-1])
-    a = jnp.einsum("ri,ijk->rjk", jnp.asarray(wr, a.dtype), a)
-    return jnp.einsum("cj,rjk->rck", jnp.asarray(wc, a.dtype), a).reshape(R * C, a.shape[-1])
+    p, n, expand = coarse_grid(points, normals, grid_shape, lines)
+    return expand(fn(p, n))

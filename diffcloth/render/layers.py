@@ -3,21 +3,27 @@
 `frame.render` composites the cloth with these layers by depth. Both layers' receivers (a hit
 point and normal per pixel) are known from the camera and the shapes alone, so their light
 visibility and ambient occlusion are looked up together: one `layer_shadow_visibility` and one
-`layer_sky_visibility` over the stacked (2, H, W) receivers instead of one per layer (each
+`layer_sky_visibility` over the stacked (2, H, W) receivers instead of one per layer, joined
+by the cloth's per-vertex receivers where the "fit" preset looks the cloth up per vertex (each
 lookup is a few hundred small XLA operations, forward and backward: at 64^2 their count, not
 their size, sets the cost of a shadowed frame).
 """
 
 from __future__ import annotations
 
+from functools import partial
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from diffcloth.render.camera import Camera, pixel_rays, project
+from diffcloth.render.grid_coarse import coarse_grid
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.shade import blinn_phong
-from diffcloth.render.shadows import ShadowMaps, layer_shadow_visibility
-from diffcloth.render.sky import SkyMaps, layer_sky_visibility
+from diffcloth.render.shadows import ShadowMaps, layer_shadow_receivers, shadow_visibility
+from diffcloth.render.sky import COARSE_GRID, SkyMaps, layer_sky_receivers, sky_visibility
 from diffcloth.render.sphere_layer import sphere_geometry, sphere_shade
 from diffcloth.shapes import Plane, Sphere
 
@@ -79,18 +85,30 @@ def plane_shade(camera, geometry, lights: Lights, appearance: Appearance, color,
     return jnp.concatenate([rgb * alpha, alpha], axis=-1), depth
 
 
-def layer_lighting(shadows: ShadowMaps | None, sky: SkyMaps | None, points, normals):
-    """Light visibility and ambient visibility of L ray-cast layers, one lookup of each.
+def _batched(fn, groups):
+    """fn over the concatenation of receiver groups [(points (..., 3), normals (..., 3))], split
+    back into each group's leading shape: one lookup instead of one per group.
 
-    Shapes: points (L, H, W, 3) m, normals (L, H, W, 3) -> a list of L pairs
-    (vis (H, W, nl) or None, sky_vis (H, W) or None).
+    Shapes: groups of points (..., 3) m, normals (..., 3) -> a list of fn's (..., k) or (...).
     """
-    vis = layer_shadow_visibility(shadows, points, normals)
-    sky_vis = layer_sky_visibility(sky, points, normals)
+    flat = [(p.reshape(-1, 3), n.reshape(-1, 3)) for p, n in groups]
+    out = fn(jnp.concatenate([p for p, _ in flat]), jnp.concatenate([n for _, n in flat]))
+    sizes = np.cumsum([p.shape[0] for p, _ in flat])[:-1]
     return [
-        (None if vis is None else vis[i], None if sky_vis is None else sky_vis[i])
-        for i in range(points.shape[0])
+        o.reshape(*p.shape[:-1], *out.shape[1:])
+        for o, (p, _) in zip(jnp.split(out, sizes), groups, strict=True)
     ]
+
+
+class FrameLayers(NamedTuple):
+    """`ray_cast_layers`' result: each ray-cast layer's (RGBA (H, W, 4), depth (H, W)) or None;
+    the cloth's per-vertex light visibility (n, nl) and occlusion (n, 2) (front, back) when
+    they were looked up with the layers (`surface_gbuffer`'s vertex_light / vertex_sky)."""
+
+    sphere: tuple | None
+    plane: tuple | None
+    vertex_light: jax.Array | None
+    vertex_sky: jax.Array | None
 
 
 def ray_cast_layers(
@@ -103,26 +121,54 @@ def ray_cast_layers(
     plane_color=(0.6, 0.6, 0.6),
     shadows: ShadowMaps | None = None,
     sky: SkyMaps | None = None,
-):
-    """The sphere layer and the plane layer of a frame (each None when absent): premultiplied
-    RGBA (H, W, 4) and view depth (H, W) each, their lighting looked up together.
+    cloth=None,
+) -> FrameLayers:
+    """The sphere layer and the plane layer of a frame (module docstring) and, with `cloth` =
+    (positions (n, 3), normals (n, 3), grid_shape or None), the cloth's per-vertex light
+    visibility (when `shadows.per_vertex`) and occlusion (when `sky.per_vertex`), all from one
+    light lookup and one occlusion lookup.
 
-    Shapes: spheres (k,), planes (npl,) -> ((H, W, 4), (H, W)) or None, twice.
+    Shapes: spheres (k,), planes (npl,) -> FrameLayers.
     """
     geoms = []
     if spheres is not None:
         geoms.append(("sphere", sphere_geometry(camera, spheres)))
     if planes is not None:
         geoms.append(("plane", plane_geometry(camera, planes)))
-    if not geoms:
-        return None, None
-    points = jnp.stack([g[2] for _, g in geoms])
-    normals = jnp.stack([g[3] for _, g in geoms])
-    lit = layer_lighting(shadows, sky, points, normals)
+    light_groups, sky_groups, light_back, sky_back = [], [], [], []
+    if geoms:
+        points = jnp.stack([g[2] for _, g in geoms])
+        normals = jnp.stack([g[3] for _, g in geoms])
+        if shadows is not None:
+            p, n, up = layer_shadow_receivers(shadows, points, normals)
+            light_groups.append((p, n))
+            light_back.append(up)
+        if sky is not None:
+            p, n, up = layer_sky_receivers(sky, points, normals)
+            sky_groups.append((p, n))
+            sky_back.append(up)
+    if cloth is not None and shadows is not None and shadows.per_vertex:
+        p, n, expand = coarse_grid(*cloth, shadows.size)
+        light_groups.append((p, n))
+        light_back.append(expand)
+    if cloth is not None and sky is not None and sky.per_vertex:
+        p, n, expand = coarse_grid(*cloth, COARSE_GRID)
+        sky_groups.append((jnp.stack([p, p]), jnp.stack([n, -n])))  # both sides
+        sky_back.append(lambda a, expand=expand: expand(jnp.moveaxis(a, 0, -1)))
+    vis = _batched(partial(shadow_visibility, shadows), light_groups) if light_groups else []
+    sky_vis = _batched(partial(sky_visibility, sky), sky_groups) if sky_groups else []
+    vis = [back(v) for back, v in zip(light_back, vis, strict=True)]
+    sky_vis = [back(v) for back, v in zip(sky_back, sky_vis, strict=True)]
+    layer_vis = vis.pop(0) if geoms and shadows is not None else None
+    layer_sky = sky_vis.pop(0) if geoms and sky is not None else None
     out = {"sphere": None, "plane": None}
-    for (kind, g), (vis, sky_vis) in zip(geoms, lit, strict=True):
+    for i, (kind, g) in enumerate(geoms):
+        v = None if layer_vis is None else layer_vis[i]
+        a = None if layer_sky is None else layer_sky[i]
         if kind == "sphere":
-            out[kind] = sphere_shade(camera, g, lights, appearance, vis, sky_vis)
+            out[kind] = sphere_shade(camera, g, lights, appearance, v, a)
         else:
-            out[kind] = plane_shade(camera, g, lights, appearance, plane_color, vis, sky_vis)
-    return out["sphere"], out["plane"]
+            out[kind] = plane_shade(camera, g, lights, appearance, plane_color, v, a)
+    return FrameLayers(
+        out["sphere"], out["plane"], vis[0] if vis else None, sky_vis[0] if sky_vis else None
+    )

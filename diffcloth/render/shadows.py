@@ -450,16 +450,38 @@ def shadow_visibility(maps: ShadowMaps | None, points, normals, *, taps: int | N
 
 
 def vertex_shadow_visibility(maps: ShadowMaps | None, points, normals, grid_shape=None):
-    """`shadow_visibility` at a surface's vertices (the `maps.per_vertex` lookup, interpolated
-    by the rasterizer). With the (vrows, vcols) `grid_shape` of a tessellated grid it is looked
-    up on at most `maps.size` vertex rows and columns (about one a texel: the map holds no finer
-    detail) and interpolated linearly along the grid to the others (`grid_coarse`).
+    """`shadow_visibility` at a surface's vertices (`maps.per_vertex`); on a tessellated grid
+    (`grid_shape` (vrows, vcols)) at most `maps.size` vertex rows and columns of it (about one a
+    texel: the map holds no finer detail), interpolated along the grid (`grid_coarse`).
 
     Shapes: points (n, 3) m, normals (n, 3) -> (n, nl); None when maps is None.
     """
     if maps is None:
         return None
     return on_coarse_grid(partial(shadow_visibility, maps), points, normals, grid_shape, maps.size)
+
+
+def layer_shadow_receivers(maps: ShadowMaps | None, points, normals):
+    """The receivers `layer_shadow_visibility` looks up and the map back to the pixels:
+    (points', normals', upsample); with `maps.layer_stride` f > 1 (and the image's sides
+    multiples of f) the f x f blocks' mean points and normals, upsample bilinear; otherwise the
+    pixels themselves and the identity.
+
+    Shapes: points (..., H, W, 3) m, normals (..., H, W, 3) -> (..., H', W', 3) twice, and
+    upsample: (..., H', W', k) -> (..., H, W, k).
+    """
+    f = 1 if maps is None else maps.layer_stride
+    *lead, H, W = points.shape[:-1]
+    if f <= 1 or H % f or W % f:
+        return points, normals, lambda a: a
+
+    def block_mean(a):
+        return jnp.mean(a.reshape(*lead, H // f, f, W // f, f, 3), axis=(-4, -2))
+
+    def upsample(low):
+        return jax.image.resize(low, (*lead, H, W, low.shape[-1]), "linear")
+
+    return block_mean(points), block_mean(normals), upsample
 
 
 def layer_shadow_visibility(maps: ShadowMaps | None, points, normals):
@@ -472,13 +494,7 @@ def layer_shadow_visibility(maps: ShadowMaps | None, points, normals):
     Shapes: points (..., H, W, 3) m, normals (..., H, W, 3) -> (..., H, W, nl); None when maps
     is None.
     """
-    f = 1 if maps is None else maps.layer_stride
-    *lead, H, W = points.shape[:-1]
-    if f <= 1 or H % f or W % f:
-        return shadow_visibility(maps, points, normals)
-
-    def block_mean(a):
-        return jnp.mean(a.reshape(*lead, H // f, f, W // f, f, 3), axis=(-4, -2))
-
-    low = shadow_visibility(maps, block_mean(points), block_mean(normals))
-    return jax.image.resize(low, (*lead, H, W, low.shape[-1]), "linear")
+    if maps is None:
+        return None
+    p, n, upsample = layer_shadow_receivers(maps, points, normals)
+    return upsample(shadow_visibility(maps, p, n))

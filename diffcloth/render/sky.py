@@ -249,6 +249,26 @@ def pixel_sky_visibility(sky: SkyMaps | None, attributes: dict, points, normals,
     return sky_visibility(sky, points, normals)
 
 
+def layer_sky_receivers(sky: SkyMaps | None, points, normals):
+    """The receivers `layer_sky_visibility` evaluates and the map back to the pixels:
+    (points', normals', upsample); with `sky.layer_stride` f > 1 every f-th pixel of every f-th
+    row, upsample bilinear; otherwise the pixels themselves and the identity.
+
+    Shapes: points (..., H, W, 3) m, normals (..., H, W, 3) -> (..., H', W', 3) twice, and
+    upsample: (..., H', W') -> (..., H, W).
+    """
+    f = 1 if sky is None else sky.layer_stride
+    if f <= 1:
+        return points, normals, lambda a: a
+    *lead, H, W = points.shape[:-1]
+    o = f // 2
+    return (
+        points[..., o::f, o::f, :],
+        normals[..., o::f, o::f, :],
+        lambda low: jax.image.resize(low, (*lead, H, W), "linear"),
+    )
+
+
 def layer_sky_visibility(sky: SkyMaps | None, points, normals):
     """A of a ray-cast layer (spheres, planes): at every pixel, or with `sky.layer_stride` f > 1
     at every f-th pixel of every f-th row, bilinearly upsampled (A is low-frequency; continuous
@@ -257,13 +277,10 @@ def layer_sky_visibility(sky: SkyMaps | None, points, normals):
     Shapes: points (..., H, W, 3) m, normals (..., H, W, 3) -> (..., H, W); None when sky is
     None.
     """
-    f = 1 if sky is None else sky.layer_stride
-    if f <= 1:
-        return sky_visibility(sky, points, normals)
-    *lead, H, W = points.shape[:-1]
-    o = f // 2
-    low = sky_visibility(sky, points[..., o::f, o::f, :], normals[..., o::f, o::f, :])
-    return jax.image.resize(low, (*lead, H, W), "linear")
+    if sky is None:
+        return None
+    p, n, upsample = layer_sky_receivers(sky, points, normals)
+    return upsample(sky_visibility(sky, p, n))
 
 
 def sphere_form_factor(points, normals, spheres: Sphere):
