@@ -120,9 +120,9 @@ def mixed_mode(fn, mode: str = "auto"):
 
     def rule(primals, tangents):
         flat, tree = jax.tree_util.tree_flatten(primals)
-        tflat = jax.tree_util.tree_leaves(
-            tangents, is_leaf=lambda t: isinstance(t, SymbolicZero) or t is None
-        )
+        # the tangents at the primal leaves' places (a None child, such as a switched-off
+        # `SimSettings.self_contact`, has no leaf in either)
+        tflat = tree.flatten_up_to(tangents)
         idx = [i for i, (a, t) in enumerate(zip(flat, tflat, strict=True))
                if _is_float(a) and _nonzero(t)]  # fmt: skip
 
