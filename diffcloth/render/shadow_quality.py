@@ -16,7 +16,8 @@
   rasterized into it decimated to triangles about two texels wide (`decimated_grid`), the sphere
   discs' angles from polynomial arctangents (`_math.fast_atan2`). Ambient occlusion uses no maps
   at all: closed forms (`render.sky_discs`: the cloth as discs at the vertices of a grid of at
-  most 16 a side, spheres by their exact form factor, planes hiding half the directions), any
+  most 16 a side and at most one a FIT_DISC_PIXELS pixels of the image's side (12 at 64^2),
+  spheres by their exact form factor, planes hiding half the directions), any
   `ambient_occlusion` > 0 turning it on; on the cloth at its vertices (both sides), interpolated
   by the rasterizer (a lower resolution that never bleeds across a silhouette; on a grid surface
   at 16 x 16 of its vertices, interpolated along the grid), on the ray-cast spheres and planes
@@ -42,6 +43,11 @@ FIT_LAYER_STRIDE = 4
 FIT_LAYER_GRID = 16
 #: the "fit" preset's light-map lookups on the ray-cast spheres and planes: once per 2 x 2 pixels
 FIT_SHADOW_STRIDE = 2
+#: image pixels a side per occluding disc of the "fit" preset's ambient occlusion (at most
+#: `sky_discs.DISC_GRID`, at least 8 discs a side): their cost is receivers x discs, and at 64^2
+#: 12 discs a side changed the benchmark frame by 6e-5 RMS against 16 (benchmarks/shading.py
+#: scene)
+FIT_DISC_PIXELS = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +66,7 @@ class ShadowSettings:
     sky_analytic: bool = False
     layer_stride: int = 1
     light_per_vertex: bool = False
+    disc_grid: int = 16
 
 
 def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> ShadowSettings:
@@ -73,6 +80,7 @@ def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> Shad
     Shapes: none (Python ints and a string in, a ShadowSettings out).
     """
     from diffcloth.render.sky import SKY_TAPS
+    from diffcloth.render.sky_discs import DISC_GRID
 
     if quality == "full":
         return ShadowSettings(
@@ -83,9 +91,10 @@ def shadow_settings(quality: str, shadow_map_size: int, image_size: int) -> Shad
         size = min(int(shadow_map_size), max(32, side // 2))
         sky = max(FIT_SKY_MIN, side // 4)
         stride = max(FIT_LAYER_STRIDE, side // FIT_LAYER_GRID)
+        discs = min(DISC_GRID, max(8, side // FIT_DISC_PIXELS))
         return ShadowSettings(
             size, 1, sky, 1, True, True, True, stride, True, True, FIT_SHADOW_STRIDE,
-            light_per_vertex=True,
+            light_per_vertex=True, disc_grid=discs,
         )  # fmt: skip
     raise ValueError(f"shadow_quality must be one of {SHADOW_QUALITIES}, got {quality!r}")
 
@@ -118,7 +127,6 @@ def frame_maps(
     """
     from diffcloth.render.frame import frame_shadow_maps
     from diffcloth.render.sky import frame_sky_maps
-    from diffcloth.render.sky_discs import DISC_GRID
 
     st = shadow_settings(quality, shadow_map_size, image_size)
     coarse = decimated_grid if st.decimate else lambda s, _: s
@@ -134,7 +142,7 @@ def frame_maps(
         per_vertex=st.light_per_vertex,
     )
     sky = frame_sky_maps(
-        coarse(surface, 2 * DISC_GRID if st.sky_analytic else st.sky_size),
+        coarse(surface, 2 * st.disc_grid if st.sky_analytic else st.sky_size),
         ambient_occlusion,
         spheres=spheres,
         occluders=occluders,
