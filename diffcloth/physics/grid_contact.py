@@ -56,6 +56,7 @@ from diffcloth.physics.mesh.selfcontact import (
     check_pairs,
     find_pairs,
     make_self_contact,
+    min_triangle_height,
     weights,
 )
 from diffcloth.physics.mesh.selfcontact_energy import mollifier
@@ -114,10 +115,7 @@ def min_rest_height(net) -> float:
     """The shortest altitude of the net's rest triangles, m (numpy, eager).
     Shapes: net (rows, cols) -> float."""
     faces, _ = _topology(net.rows, net.cols)
-    p = np.asarray(net.rest, np.float64).reshape(-1, 3)[faces]
-    e = np.stack([p[:, 2] - p[:, 1], p[:, 0] - p[:, 2], p[:, 1] - p[:, 0]], 1)
-    area2 = np.linalg.norm(np.cross(e[:, 0], e[:, 1]), axis=1)
-    return float(np.min(area2[:, None] / np.maximum(np.linalg.norm(e, axis=2), 1e-300)))
+    return min_triangle_height(np.asarray(net.rest).reshape(-1, 3), faces)
 
 
 def make_grid_self_contact(

@@ -20,7 +20,7 @@ from diffcloth.render import sky as skylib
 from diffcloth.render.boxes import BoxPoses, box_mesh, box_neighbors_np
 from diffcloth.render.camera import Camera, eye_position, pixel_rays
 from diffcloth.render.fringe import fringe_depth, layer_in_front
-from diffcloth.render.layers import ray_cast_layers
+from diffcloth.render.layers import PLANE_COLOR, ray_cast_layers
 from diffcloth.render.lights import Appearance, Lights
 from diffcloth.render.raster import antialias, edge_neighbors, rasterize_gbuffer
 from diffcloth.render.shade import MODES, ShadingBuffer, blinn_phong, light_vertices, shade
@@ -28,9 +28,6 @@ from diffcloth.render.shadows import ShadowMaps, shadow_visibility
 from diffcloth.render.sky import SkyMaps, sky_visibility
 from diffcloth.render.textures import Textures
 from diffcloth.shapes import Plane, Sphere
-
-#: default albedo of drawn ground planes (linear RGB)
-PLANE_COLOR = (0.6, 0.6, 0.6)
 
 
 @functools.lru_cache(maxsize=32)

@@ -27,6 +27,9 @@ from diffcloth.render.sky import COARSE_GRID, SkyMaps, layer_sky_receivers, sky_
 from diffcloth.render.sphere_layer import sphere_geometry, sphere_shade
 from diffcloth.shapes import Plane, Sphere
 
+#: default albedo of drawn ground planes (linear RGB)
+PLANE_COLOR = (0.6, 0.6, 0.6)
+
 
 def safe_div_neg(side, nd):
     """Ray parameter t = side / -nd of a plane hit; 0 where the ray is parallel.
@@ -118,7 +121,7 @@ def ray_cast_layers(
     *,
     spheres: Sphere | None = None,
     planes: Plane | None = None,
-    plane_color=(0.6, 0.6, 0.6),
+    plane_color=PLANE_COLOR,
     shadows: ShadowMaps | None = None,
     sky: SkyMaps | None = None,
     cloth=None,

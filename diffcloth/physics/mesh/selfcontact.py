@@ -35,6 +35,8 @@ __all__ = [
     "find_pairs",
     "find_pairs_with_distance",
     "make_self_contact",
+    "min_rest_height",
+    "min_triangle_height",
     "point_triangle",
     "step_radius",
 ]
@@ -110,12 +112,21 @@ def make_self_contact(
 def min_rest_height(cloth) -> float:
     """The shortest altitude of the rest triangles (material coordinates), m (numpy, eager).
     Shapes: cloth (n vertices, m faces) -> float."""
-    uv = np.asarray(cloth.uv, np.float64)
-    f = np.asarray(cloth.faces)
-    p = uv[f]
+    return min_triangle_height(cloth.uv, cloth.faces)
+
+
+def min_triangle_height(points, faces) -> float:
+    """The shortest altitude of the triangles faces (m, 3) over points (n, 2) or (n, 3), in the
+    points' unit (numpy, eager): the bound on a self-contact thickness (below half of it the
+    rest mesh is not in contact with itself).
+    Shapes: points (n, 2 | 3), faces (m, 3) -> float."""
+    p = np.asarray(points, np.float64)
+    if p.shape[-1] == 2:
+        p = np.concatenate([p, np.zeros_like(p[:, :1])], axis=1)
+    p = p[np.asarray(faces)]
     e = np.stack([p[:, 2] - p[:, 1], p[:, 0] - p[:, 2], p[:, 1] - p[:, 0]], 1)
-    a = np.abs(e[:, 0, 0] * e[:, 1, 1] - e[:, 0, 1] * e[:, 1, 0])  # 2 x area
-    return float(np.min(a[:, None] / np.maximum(np.linalg.norm(e, axis=2), 1e-300)))
+    area2 = np.linalg.norm(np.cross(e[:, 0], e[:, 1]), axis=1)
+    return float(np.min(area2[:, None] / np.maximum(np.linalg.norm(e, axis=2), 1e-300)))
 
 
 # ---------------------------------------------------------------------------------------------
