@@ -52,8 +52,9 @@ def disc_occlusion(points, normals, discs):
     """Summed form factor of the discs seen from receivers (module docstring), not clipped.
     Its derivative is a custom JVP (`_disc_sum_jvp`): one pass over the receiver-disc pairs
     computes the value and the tangent's coefficients, and reverse mode transposes the tangent
-    into matrix-vector products (autodiff of the closed form kept some fifteen (receivers,
-    discs) arrays for the backward pass and cost about five times the value).
+    into matrix products (autodiff of the closed form kept a dozen (receivers, discs[, 3])
+    arrays for the backward pass: 932 receivers x 140 discs, value and gradient 1.10 ms
+    against 0.86 ms, docs/performance.md).
 
     Shapes: points (..., 3) m, normals (..., 3) unit, discs as `mesh_discs` -> (...).
     """
