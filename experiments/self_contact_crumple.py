@@ -8,13 +8,14 @@ frame with every frame checked by the independent numpy triangle-triangle inters
           the first 2/3 of the run (then held): gravity and the shrinking rim push it into folds.
 
 float64, implicit Euler at dt = 1/60 s, "wang2011-gray-interlock", thickness min(2 mm, 0.4 x
-the shortest rest triangle height), tol 1e-2, max_iters 300. Writes results/self_contact_crumple/
+the shortest rest triangle height), tol 1e-2 (--tol), max_iters 300. Writes results/self_contact_crumple/
 <scene>.json (per frame: converged, Newton iterations, residual, pairs in contact, intersecting
 triangle pairs, seconds) and <scene>.png (six frames). Stops at the first frame that does not
 converge.
 
     python experiments/self_contact_crumple.py square --size 0.5 --edge 0.0107 --seconds 3
     python experiments/self_contact_crumple.py disc --size 0.15 --edge 0.0057 --seconds 3
+    python experiments/self_contact_crumple.py square --size 0.25 --seconds 0.5 --tol 0.05
 """
 
 from __future__ import annotations
@@ -80,18 +81,30 @@ def disc_scene(radius, edge, seconds):
     return cloth, x, None, pins
 
 
-def crumple(scene, size, edge, seconds, capacity=24, log=print, every=1, max_wall=None):
+def crumple(
+    scene,
+    size,
+    edge,
+    seconds,
+    capacity=24,
+    log=print,
+    every=1,
+    max_wall=None,
+    tol=1e-2,
+    self_contact=True,
+):
     """Run a scene; returns (cloth, frames (list of (n, 3) arrays, every `every` frames and the
     last), rows (per-frame dicts), info); stops at the first frame that does not converge, or
-    after the frame that ends past max_wall seconds of wall time."""
+    after the frame that ends past max_wall seconds of wall time. self_contact False: the same
+    solve without it (the baseline of its Newton iterations)."""
     if scene == "square":
         cloth, x0, colliders, pins = square_scene(size, edge)
     else:
         cloth, x0, colliders, pins = disc_scene(size, edge, seconds)
     fabric = make_fabric("wang2011-gray-interlock")
     thickness = min(2e-3, 0.4 * sc.min_rest_height(cloth))
-    s = sc.make_self_contact(thickness, cloth=cloth, capacity=capacity)
-    settings = SolverSettings(max_iters=300, tol=1e-2)
+    s = sc.make_self_contact(thickness, cloth=cloth, capacity=capacity) if self_contact else None
+    settings = SolverSettings(max_iters=300, tol=tol)
     pinned = np.asarray(cloth.pinned)
     rest = np.asarray(cloth.rest)
     with jax.numpy_rank_promotion("allow"):
@@ -178,6 +191,17 @@ def main(argv=None):
         default=None,
         help="s: stop after the frame that ends past this wall time (outputs kept)",
     )
+    ap.add_argument(
+        "--tol",
+        type=float,
+        default=1e-2,
+        help="Newton tolerance: the largest free-vertex force residual over its weight",
+    )
+    ap.add_argument(
+        "--no-self-contact",
+        action="store_true",
+        help="the same scene and solve without self-contact (its Newton iterations' baseline)",
+    )
     ap.add_argument("--out", default=str(ROOT / "results" / "self_contact_crumple"))
     args = ap.parse_args(argv)
     size = args.size or (0.5 if args.scene == "square" else 0.15)
@@ -185,6 +209,10 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tag = f"{args.scene}_{int(round(size * 1000))}mm_e{edge * 1000:.1f}mm_{args.seconds:g}s"
+    if args.tol != 1e-2:
+        tag += f"_tol{args.tol:g}"
+    if args.no_self_contact:
+        tag += "_no_self_contact"
     log_file = open(out / f"{tag}.log", "w")  # noqa: SIM115
 
     def log(line):
@@ -194,7 +222,16 @@ def main(argv=None):
 
     t0 = time.perf_counter()
     cloth, frames, rows, info = crumple(
-        args.scene, size, edge, args.seconds, args.capacity, log, args.every, args.max_wall
+        args.scene,
+        size,
+        edge,
+        args.seconds,
+        args.capacity,
+        log,
+        args.every,
+        args.max_wall,
+        args.tol,
+        not args.no_self_contact,
     )
     ids = info.pop("frame_ids")
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,

@@ -38,7 +38,8 @@ G = jnp.array([0.0, -9.81, 0.0])
 
 
 def step_with_stats(cloth, fabric, x_n, v_n, h, colliders, s, settings):
-    """dynamics.implicit_step's solve, returning its Newton statistics too."""
+    """dynamics.implicit_step's solve, returning its Newton statistics too (s None: without
+    self-contact, pairs within the thickness then 0)."""
     theta = {
         "cloth": cloth,
         "fabric": fabric,
@@ -52,17 +53,18 @@ def step_with_stats(cloth, fabric, x_n, v_n, h, colliders, s, settings):
         "wind": jnp.zeros(3),
         "el_prev": energy.elastic_energy(cloth, fabric, x_n),
         "g_prev": jax.grad(lambda y: energy.elastic_energy(cloth, fabric, y))(x_n),
-        "self_contact": s,
     }
-    theta["sc_pairs"] = scs.candidates(cloth, s, x_n)  # as dynamics.implicit_step
-    theta["sc_frame"] = scs.frame(cloth, s, x_n, theta["sc_pairs"][0])
-    problem = _Problem("implicit", settings, 0.0, mc.has_colliders(colliders), True)
+    if s is not None:
+        theta["self_contact"] = s
+        theta["sc_pairs"] = scs.candidates(cloth, s, x_n)  # as dynamics.implicit_step
+        theta["sc_frame"] = scs.frame(cloth, s, x_n, theta["sc_pairs"][0])
+    problem = _Problem("implicit", settings, 0.0, mc.has_colliders(colliders), s is not None)
     res = _newton(problem, theta, x_n)
     free = ~cloth.pinned
     v = jnp.where(free[:, None], (res.x - x_n) / h, v_n)
     x, v = dynamics._project_out(colliders, res.x, v)
-    pairs = sc.find_pairs(cloth, s, x, s.thickness)
-    return x, v, res.converged, res.iterations, res.residual, pairs.count
+    count = 0 if s is None else sc.find_pairs(cloth, s, x, s.thickness).count
+    return x, v, res.converged, res.iterations, res.residual, count
 
 
 def main(argv=None):
