@@ -92,6 +92,7 @@ def crumple(
     max_wall=None,
     tol=1e-2,
     self_contact=True,
+    step_fraction=0.5,
 ):
     """Run a scene; returns (cloth, frames (list of (n, 3) arrays, every `every` frames and the
     last), rows (per-frame dicts), info); stops at the first frame that does not converge, or
@@ -103,7 +104,11 @@ def crumple(
         cloth, x0, colliders, pins = disc_scene(size, edge, seconds)
     fabric = make_fabric("wang2011-gray-interlock")
     thickness = min(2e-3, 0.4 * sc.min_rest_height(cloth))
-    s = sc.make_self_contact(thickness, cloth=cloth, capacity=capacity) if self_contact else None
+    s = None
+    if self_contact:
+        s = sc.make_self_contact(
+            thickness, cloth=cloth, capacity=capacity, step_fraction=step_fraction
+        )
     settings = SolverSettings(max_iters=300, tol=tol)
     pinned = np.asarray(cloth.pinned)
     rest = np.asarray(cloth.rest)
@@ -198,6 +203,12 @@ def main(argv=None):
         help="Newton tolerance: the largest free-vertex force residual over its weight",
     )
     ap.add_argument(
+        "--step-fraction",
+        type=float,
+        default=0.5,
+        help="SelfContact.step_fraction: a Newton step's cap, in mean rest edges",
+    )
+    ap.add_argument(
         "--no-self-contact",
         action="store_true",
         help="the same scene and solve without self-contact (its Newton iterations' baseline)",
@@ -213,6 +224,8 @@ def main(argv=None):
         tag += f"_tol{args.tol:g}"
     if args.no_self_contact:
         tag += "_no_self_contact"
+    if args.step_fraction != 0.5:
+        tag += f"_sf{args.step_fraction:g}"
     log_file = open(out / f"{tag}.log", "w")  # noqa: SIM115
 
     def log(line):
@@ -232,6 +245,7 @@ def main(argv=None):
         args.max_wall,
         args.tol,
         not args.no_self_contact,
+        args.step_fraction,
     )
     ids = info.pop("frame_ids")
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
