@@ -34,7 +34,6 @@ import self_contact_strip_iters as strip  # noqa: E402
 
 from diffcloth.physics.mesh import (  # noqa: E402
     SolverSettings,
-    energy,
     linsolve,
     make_fabric,
     solve,  # noqa: E402
@@ -77,15 +76,7 @@ def main(argv=None):
             x, v, _, it, _, count = step(x, v)
         print(f"{cloth.num_vertices} vertices, frame {args.frame}: {int(count)} pairs in "
               f"contact, {int(it)} Newton iterations")  # fmt: skip
-        theta = {
-            "cloth": cloth, "fabric": fabric, "colliders": floor, "gravity": strip.G,
-            "x_pins": x, "free": ~cloth.pinned, "h": jnp.asarray(h), "x_n": x, "v_n": v,
-            "wind": jnp.zeros(3), "el_prev": energy.elastic_energy(cloth, fabric, x),
-            "g_prev": jax.grad(lambda y: energy.elastic_energy(cloth, fabric, y))(x),
-            "self_contact": s,
-        }  # fmt: skip
-        theta["sc_pairs"] = scs.candidates(cloth, s, x)
-        theta["sc_frame"] = scs.frame(cloth, s, x, theta["sc_pairs"][0])
+        theta = strip.implicit_theta(cloth, fabric, x, v, h, floor, s)
         with_sc = solve._Problem("implicit", settings, 0.0, True, True)
         plain = solve._Problem("implicit", settings, 0.0, True, False)
         y = x + h * v  # an iterate inside the next step

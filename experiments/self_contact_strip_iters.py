@@ -37,9 +37,9 @@ from diffcloth.physics.mesh.solve import _newton, _Problem  # noqa: E402
 G = jnp.array([0.0, -9.81, 0.0])
 
 
-def step_with_stats(cloth, fabric, x_n, v_n, h, colliders, s, settings):
-    """dynamics.implicit_step's solve, returning its Newton statistics too (s None: without
-    self-contact, pairs within the thickness then 0)."""
+def implicit_theta(cloth, fabric, x_n, v_n, h, colliders, s):
+    """The parameters `solve._newton` takes for dynamics.implicit_step's solve from (x_n, v_n)
+    (s None: without self-contact)."""
     theta = {
         "cloth": cloth,
         "fabric": fabric,
@@ -58,6 +58,13 @@ def step_with_stats(cloth, fabric, x_n, v_n, h, colliders, s, settings):
         theta["self_contact"] = s
         theta["sc_pairs"] = scs.candidates(cloth, s, x_n)  # as dynamics.implicit_step
         theta["sc_frame"] = scs.frame(cloth, s, x_n, theta["sc_pairs"][0])
+    return theta
+
+
+def step_with_stats(cloth, fabric, x_n, v_n, h, colliders, s, settings):
+    """dynamics.implicit_step's solve, returning its Newton statistics too (s None: without
+    self-contact, pairs within the thickness then 0)."""
+    theta = implicit_theta(cloth, fabric, x_n, v_n, h, colliders, s)
     problem = _Problem("implicit", settings, 0.0, mc.has_colliders(colliders), s is not None)
     res = _newton(problem, theta, x_n)
     free = ~cloth.pinned
