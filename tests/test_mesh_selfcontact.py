@@ -121,6 +121,30 @@ def test_capacity_overflow_is_reported():
         sc.check_pairs(pairs)
 
 
+def _pair_set(pairs):
+    idx, valid = np.asarray(pairs.idx), np.asarray(pairs.valid)
+    return {tuple(int(i) for i in r) for r, ok in zip(idx, valid, strict=True) if ok}
+
+
+def test_broad_phase_keeps_the_largest_radius_that_fits():
+    """In a pile the pairs within the full radius overflow where a shorter radius fits: one
+    broad phase returns the pairs of the largest radius that fits, as its own search finds."""
+    cloth, x = folded_sheet()
+    x = jnp.asarray(x)
+    s = sc.make_self_contact(capacity=6)
+    radii = jnp.asarray([0.1, 0.05, 0.03, 0.01])
+    fits = [not bool(_FIND(cloth, s, x, r).overflow) for r in radii]
+    assert not fits[0] and any(fits)  # the test's premise: the full radius overflows
+    pairs, dist, radius = jax.jit(sc.find_pairs_fitting)(cloth, s, x, radii)
+    assert not bool(pairs.overflow)
+    assert float(radius) == pytest.approx(float(radii[fits.index(True)]))
+    assert _pair_set(pairs) == _pair_set(_FIND(cloth, s, x, radius))
+    assert bool(jnp.all(jnp.where(pairs.valid, dist < radius, jnp.isinf(dist))))
+    # no radius fits: overflow, reported as before
+    none = jax.jit(sc.find_pairs_fitting)(cloth, sc.make_self_contact(capacity=1), x, radii[:1])
+    assert bool(none[0].overflow)
+
+
 def test_settings_are_validated():
     with pytest.raises(ValueError, match="thickness"):
         sc.make_self_contact(-1.0)

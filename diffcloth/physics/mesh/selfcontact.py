@@ -33,6 +33,7 @@ __all__ = [
     "check_pairs",
     "edge_edge",
     "find_pairs",
+    "find_pairs_fitting",
     "find_pairs_with_distance",
     "make_self_contact",
     "min_rest_height",
@@ -266,13 +267,23 @@ def find_pairs(cloth, sc: SelfContact, x, radius, motion=None) -> Pairs:
 def find_pairs_with_distance(cloth, sc: SelfContact, x, radius, motion=None):
     """`find_pairs`, and each row's distance at x (m; inf on rows that hold no pair).
     Shapes: x (n, 3), radius (), motion (n,) -> (Pairs with P rows, (P,))."""
+    radius = jnp.asarray(radius)
+    return find_pairs_fitting(cloth, sc, x, radius[None], motion)[:2]
+
+
+def find_pairs_fitting(cloth, sc: SelfContact, x, radii, motion=None):
+    """`find_pairs_with_distance` at the largest of the radii (K,) m (descending) whose pairs
+    fit the capacity, from one broad phase (its cells sized for radii[0]): in a pile of layers
+    the pairs within the full radius can overflow where a shorter one fits. Overflow: the raw
+    candidates at radii[0] did not fit their slots, or no radius's pairs fit.
+    Shapes: x (n, 3), radii (K,), motion (n,) -> (Pairs with P rows, (P,), () the radius)."""
     x = jax.lax.stop_gradient(x)
-    radius = jax.lax.stop_gradient(radius)
+    radii = jax.lax.stop_gradient(radii)
     f, e = cloth.faces, cloth.edges
     n, ne = x.shape[0], e.shape[0]
     motion = jnp.zeros(n, x.dtype) if motion is None else jax.lax.stop_gradient(motion)
     elen = safe_norm(x[e[:, 1]] - x[e[:, 0]])
-    cell = jnp.max(elen) * 1.01 + radius + 2.0 * jnp.max(motion)
+    cell = jnp.max(elen) * 1.01 + radii[0] + 2.0 * jnp.max(motion)
     cell = jnp.where(jnp.isfinite(cell) & (cell > 0), cell, 1.0)
     cap = sc.capacity
     # vertex-triangle
@@ -285,21 +296,26 @@ def find_pairs_with_distance(cloth, sc: SelfContact, x, radius, motion=None):
     idx_ee = jnp.concatenate([e[qe], e[te]], axis=1).astype(jnp.int32)
     share = (idx_ee[:, :2, None] == idx_ee[:, None, 2:]).reshape(-1, 4)
     oke = oke & (qe < te) & ~jnp.any(share, axis=1)
-    out = []
+    rows = []
     for idx, good, k, size in ((idx_vt, ok, 0, cap * n), (idx_ee, oke, 1, cap * ne)):
-        kind = jnp.full(idx.shape[:1], k, jnp.int32)
         d = safe_norm(_gap_of(x, idx, k))
         m4 = motion[idx]
         reach = (m4[:, 0] + jnp.max(m4[:, 1:], axis=1) if k == 0
                  else jnp.max(m4[:, :2], axis=1) + jnp.max(m4[:, 2:], axis=1))  # fmt: skip
-        good = good & (d < radius + reach)
+        gap_left = jnp.where(good, d - reach, jnp.inf)  # a pair is in at radius r if < r
+        fits = jnp.sum(gap_left[None, :] < radii[:, None], axis=1) <= size  # (K,)
+        rows.append((idx, k, size, d, gap_left, fits))
+    fits = rows[0][5] & rows[1][5]
+    pick = jnp.argmax(fits)  # the first (largest) radius that fits; 0 when none does
+    radius = radii[pick]
+    out = []
+    for idx, k, size, d, gap_left, _ in rows:
+        good = gap_left < radius
         (sel,) = jnp.nonzero(good, size=size, fill_value=0)
         live = jnp.arange(size) < jnp.sum(good)
-        out.append(
-            (idx[sel], kind[:size], live, jnp.sum(good), size, jnp.where(live, d[sel], jnp.inf))
-        )
-    overflow = (tot_vt > 16 * cap * n) | (tot_ee > 16 * cap * ne)
-    overflow = overflow | (out[0][3] > out[0][4]) | (out[1][3] > out[1][4])
+        kind = jnp.full((size,), k, jnp.int32)
+        out.append((idx[sel], kind, live, jnp.sum(good), size, jnp.where(live, d[sel], jnp.inf)))
+    overflow = (tot_vt > 16 * cap * n) | (tot_ee > 16 * cap * ne) | ~jnp.any(fits)
     pairs = Pairs(
         idx=jnp.concatenate([out[0][0], out[1][0]]),
         kind=jnp.concatenate([out[0][1], out[1][1]]),
@@ -307,7 +323,7 @@ def find_pairs_with_distance(cloth, sc: SelfContact, x, radius, motion=None):
         overflow=overflow,
         count=(out[0][3] + out[1][3]).astype(jnp.int32),
     )
-    return pairs, jnp.concatenate([out[0][5], out[1][5]])
+    return pairs, jnp.concatenate([out[0][5], out[1][5]]), radius
 
 
 def check_pairs(pairs: Pairs, what: str = "self-contact") -> Pairs:

@@ -10,9 +10,11 @@ every pair the barrier sees. A step x -> x + a p, a in [0, 1], is checked at its
 displacement is then within B for every a, with the centres interpolated); where it is not, C
 is found again at x. Each step is capped so that max_i |p_i - c| <= B (a translation, such as
 a falling sheet's, is not capped): after a new broad phase the step always fits. Where C at
-that reach overflows the broad phase's capacity (a pile of layers), C is found with the reach
-of the step at hand only (and again at every step while it overflows: the steps shrink as the
-damping grows, as before 2026-11-29).
+that reach overflows the broad phase's capacity (a pile of layers), the same broad phase keeps
+the largest reach of a ladder (B, B/2, ..., B/16 and the step's own) whose pairs fit
+(`selfcontact.find_pairs_fitting`), and a step longer than that reach is cut to it. Before
+2026-11-29 an overflow found C again with the step's own reach, two broad phases at every step
+while the pile lasted.
 
 Per Newton iteration, on C's rows (`selfcontact_energy.within`): the active pairs (closer than
 d_hat at the iterate: the gradient, the Hessian-vector products, the preconditioner) and the
@@ -34,7 +36,7 @@ from diffcloth.physics.mesh.selfcontact import (
     Pairs,
     SelfContact,
     find_pairs,
-    find_pairs_with_distance,
+    find_pairs_fitting,
     step_radius,
 )
 
@@ -64,24 +66,32 @@ class Candidates(NamedTuple):
     dist: jax.Array
 
 
-def candidates(cloth, sc: SelfContact, x, reach=None):
-    """C at x (n, 3): every pair within d_hat + 2 reach (default `step_radius`; the broad
-    phase), and each row's distance (inf where it holds no pair).
-    Shapes: x (n, 3), reach () -> (Pairs with P rows, (P,))."""
+def _ladder(big, small):
+    """(K,) m, the reaches a broad phase tries, descending: big, big/2, ..., big/16 and small."""
+    steps = big * 0.5 ** jnp.arange(5, dtype=jnp.result_type(big))
+    return jnp.sort(jnp.concatenate([steps, jnp.reshape(small, (1,)).astype(steps.dtype)]))[::-1]
+
+
+def candidates(cloth, sc: SelfContact, x, reach=None, small=0.0):
+    """C at x (n, 3): every pair within d_hat + 2 r (the broad phase), r the largest reach of
+    `_ladder(reach, small)` whose pairs fit the capacity (reach: default `step_radius`); each
+    row's distance (inf where it holds no pair), and r.
+    Shapes: x (n, 3), reach () -> (Pairs with P rows, (P,), ())."""
     reach = step_radius(cloth, sc) if reach is None else reach
-    return find_pairs_with_distance(cloth, sc, x, sc.thickness + 2.0 * reach)
+    ladder = _ladder(jnp.asarray(reach, x.dtype), small)
+    c, d, radius = find_pairs_fitting(cloth, sc, x, sc.thickness + 2.0 * ladder)
+    return c, d, 0.5 * (radius - sc.thickness)
 
 
 def _found(cloth, sc, x, small, found=None):
-    """(C, distances, reach, broad phases): C at x with reach `step_radius` (found: that C and
-    its distances, from `candidates`), or with reach `small` where that overflows."""
-    big = step_radius(cloth, sc)
-    find = lambda r: candidates(cloth, sc, x, r)
-    c, d = find(big) if found is None else found
+    """(C, distances, reach, broad phases): `candidates` at x (found: its result at x, reused),
+    and where its raw candidates overflow (cells sized for the full reach), the ladder again
+    from the reach `small` (cells sized for it)."""
+    c, d, r = candidates(cloth, sc, x, small=small) if found is None else found
     return jax.lax.cond(
         c.overflow,
-        lambda: (*find(small), jnp.asarray(small, x.dtype), jnp.int32(2)),
-        lambda: (c, d, jnp.asarray(big, x.dtype), jnp.int32(1)),
+        lambda: (*candidates(cloth, sc, x, jnp.asarray(small, x.dtype)), jnp.int32(2)),
+        lambda: (c, d, jnp.asarray(r, x.dtype), jnp.int32(1)),
     )
 
 
@@ -119,6 +129,9 @@ def filter_step(cloth, sc: SelfContact, cs: Candidates, x, p):
 
     keep = (moved <= cs.reach) & ~cs.pairs.overflow
     cs = jax.lax.cond(keep, lambda: cs, again)
+    # found again where only a reach below the step's fits (a pile): the step is cut to it
+    cut = jnp.where(keep, 1.0, jnp.minimum(1.0, cs.reach / jnp.maximum(spread(p), 1e-30)))
+    p, shrink = p * cut, shrink * cut
     moved = jnp.where(keep, moved, spread(p))
     # C's rows that x + a p can bring within d_hat by the cloth's displacement from x_c (less a
     # translation) at most; then by the pair's own distance and relative motion
