@@ -12,7 +12,9 @@ is found again at x. Each step is capped so that max_i |p_i - c| <= B (a transla
 a falling sheet's, is not capped): after a new broad phase the step always fits. Where C at
 that reach overflows the broad phase's capacity (a pile of layers), the same broad phase keeps
 the largest reach of a ladder (B, B/2, ..., B/16 and the step's own) whose pairs fit
-(`selfcontact.find_pairs_fitting`), and a step longer than that reach is cut to it. Before
+(`selfcontact.find_pairs_fitting`), and a step longer than that reach is cut to it; where the
+raw candidates overflow their slots (cells sized for B), the search runs again with cells for
+B/4, then for the step's own reach. Before
 2026-11-29 an overflow found C again with the step's own reach, two broad phases at every step
 while the pile lasted.
 
@@ -83,16 +85,25 @@ def candidates(cloth, sc: SelfContact, x, reach=None, small=0.0):
     return c, d, 0.5 * (radius - sc.thickness)
 
 
-def _found(cloth, sc, x, small, found=None):
-    """(C, distances, reach, broad phases): `candidates` at x (found: its result at x, reused),
-    and where its raw candidates overflow (cells sized for the full reach), the ladder again
-    from the reach `small` (cells sized for it)."""
-    c, d, r = candidates(cloth, sc, x, small=small) if found is None else found
-    return jax.lax.cond(
-        c.overflow,
-        lambda: (*candidates(cloth, sc, x, jnp.asarray(small, x.dtype)), jnp.int32(2)),
-        lambda: (c, d, jnp.asarray(r, x.dtype), jnp.int32(1)),
-    )
+def _found(cloth, sc, x, small, found=None, top=None):
+    """(C, distances, reach, broad phases): `candidates` at x from the reach top (default the
+    full reach B; found: its result at x, reused). Where its raw candidates overflow (a pile
+    fills the cells sized for top), the ladder again from max(top/4, small) (cells with about a
+    third of the volume), then from the reach `small` alone."""
+    small = jnp.asarray(small, x.dtype)
+    top = step_radius(cloth, sc) if top is None else top
+    c, d, r = candidates(cloth, sc, x, top, small) if found is None else found
+    mid = jnp.maximum(0.25 * top, small)
+
+    def from_reach(reach, builds, prev):
+        return jax.lax.cond(
+            prev[0].overflow,
+            lambda: (*candidates(cloth, sc, x, reach, small), builds),
+            lambda: prev,
+        )
+
+    out = (c, d, jnp.asarray(r, x.dtype), jnp.int32(1))
+    return from_reach(small, jnp.int32(3), from_reach(mid, jnp.int32(2), out))
 
 
 def spread(u):
@@ -123,8 +134,10 @@ def filter_step(cloth, sc: SelfContact, cs: Candidates, x, p):
     p = p * shrink
     moved = jnp.maximum(spread(x - cs.x_c), spread(x + p - cs.x_c))
 
-    def again():
-        c, d, r, b = _found(cloth, sc, x, 1.001 * spread(p))
+    def again():  # from twice the reach that last fitted (a pile: that first search fits)
+        small = 1.001 * spread(p)
+        top = jnp.clip(2.0 * cs.reach, small, reach)
+        c, d, r, b = _found(cloth, sc, x, small, top=top)
         return cs._replace(pairs=c, x_c=x, reach=r, builds=cs.builds + b, dist=d)
 
     keep = (moved <= cs.reach) & ~cs.pairs.overflow
