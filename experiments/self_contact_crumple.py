@@ -233,6 +233,8 @@ def main(argv=None):
         log_file.write(line + "\n")
         log_file.flush()
 
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
+                            capture_output=True, text=True).stdout.strip()  # fmt: skip
     t0 = time.perf_counter()
     cloth, frames, rows, info = crumple(
         args.scene,
@@ -248,8 +250,6 @@ def main(argv=None):
         args.step_fraction,
     )
     ids = info.pop("frame_ids")
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
-                            capture_output=True, text=True).stdout.strip()  # fmt: skip
     summary = dict(scene=args.scene, size_m=size, edge_m=edge, seconds=args.seconds,
                    frames_run=len(rows), frames_planned=int(round(args.seconds / DT)),
                    all_converged=all(r["converged"] for r in rows),

@@ -1,12 +1,15 @@
 """Self-contact of the mesh cloth, part 1: the settings, the unsigned vertex-triangle and
 edge-edge distances, and the broad phase that finds every pair closer than a radius.
 
-Broad phase (jit, fixed capacity): triangles and edges are keyed by the grid cell of their
-centroid / midpoint (cell = the longest current edge + the search radius, so that a vertex within
-the radius of a triangle, or an edge within the radius of an edge, lies in one of the 27 cells
-around it), the keys are sorted, and each query walks the key ranges of its 27 cells (hashed,
-duplicates dropped). The candidates are enumerated into a fixed number of slots by a prefix sum
-(no per-cell limit), filtered by the exact distance, and compacted into the pair capacity.
+Broad phase (jit, fixed capacity): triangles are keyed by the grid cell of their centroid and
+edges by that of their midpoint, the keys are sorted, and each query walks the key ranges of
+the cells around its own (hashed, duplicates and other cells that share a hash dropped). A
+vertex's cells are the 27 around it, sized the search radius + the largest centroid-to-corner
+distance; an edge's are its own cell and the 13 after it (each pair of cells once), sized the
+radius + the longest edge. The candidates are enumerated into a fixed number of slots by a
+prefix sum (no per-cell limit), culled by a bounding-sphere test (the vertex within radius +
+the triangle's corner distance of its centroid; the midpoints within radius + the half
+lengths), compacted, filtered by the exact distance, and compacted into the pair capacity.
 Pairs that share a vertex in the rest mesh (a vertex and its own faces, edges with a common
 end) are excluded. When a candidate or pair count exceeds its capacity the result says so
 (`Pairs.overflow`): the barrier energy is then NaN (a solve fails, never misses a contact
@@ -43,6 +46,8 @@ __all__ = [
 ]
 
 _OFFSETS = np.array(list(itertools.product((-1, 0, 1), repeat=3)), np.int32)  # (27, 3)
+# the cell itself and the 13 neighbours that come after it (a pair of distinct cells once)
+_HALF = _OFFSETS[13:]  # (14, 3): (0, 0, 0), then the lexicographically positive offsets
 _PRIMES = (73856093, 19349663, 83492791)  # Teschner et al. 2003 spatial hash
 
 
@@ -224,15 +229,18 @@ def _keys(cells):
     )
 
 
-def _candidates(query, target, cell, slots):
+def _candidates(query, target, cell, slots, offsets=_OFFSETS):
     """(slots,) query index, target index and valid mask of the (query, target) pairs whose
-    cells are neighbours (27 cells), and their total count."""
-    tkey = _keys(jnp.floor(target / cell).astype(jnp.int32))
+    cells are neighbours (offsets: `_OFFSETS`, the 27 cells around a query's, or `_HALF`; a
+    target whose cell only shares a hash with one of them is dropped), and their total count."""
+    tcell = jnp.floor(target / cell).astype(jnp.int32)
+    tkey = _keys(tcell)
     order = jnp.argsort(tkey)
     skey = tkey[order]
     qcell = jnp.floor(query / cell).astype(jnp.int32)
-    nkeys = _keys(qcell[:, None, :] + jnp.asarray(_OFFSETS)[None])  # (nq, 27)
-    earlier = jnp.asarray(np.tril(np.ones((27, 27), bool), -1))
+    k = offsets.shape[0]
+    nkeys = _keys(qcell[:, None, :] + jnp.asarray(offsets)[None])  # (nq, K)
+    earlier = jnp.asarray(np.tril(np.ones((k, k), bool), -1))
     dup = jnp.any((nkeys[:, :, None] == nkeys[:, None, :]) & earlier[None], axis=2)
     lo = jnp.searchsorted(skey, nkeys, side="left").reshape(-1)
     hi = jnp.searchsorted(skey, nkeys, side="right").reshape(-1)
@@ -242,7 +250,22 @@ def _candidates(query, target, cell, slots):
     owner = jnp.minimum(jnp.searchsorted(cum, s, side="right"), ln.shape[0] - 1)
     off = s - (cum[owner] - ln[owner])
     tgt = order[jnp.clip(lo[owner] + off, 0, order.shape[0] - 1)]
-    return owner // 27, tgt, s < cum[-1], cum[-1]
+    q = owner // k
+    # the target's own cell is one of the query's (its key's range may hold other cells)
+    diff = tcell[tgt] - qcell[q]
+    near = jnp.all(jnp.abs(diff) <= 1, axis=1)
+    if k == _HALF.shape[0]:  # the lexicographically non-negative offsets only
+        d0, d1, d2 = diff[:, 0], diff[:, 1], diff[:, 2]
+        near = near & ((d0 > 0) | ((d0 == 0) & ((d1 > 0) | ((d1 == 0) & (d2 >= 0)))))
+    return q, tgt, (s < cum[-1]) & near, cum[-1]
+
+
+def _compact(keep, size, *cols):
+    """The rows of cols where keep (S,), packed into size rows: (*cols (size,), valid (size,),
+    the count kept)."""
+    (sel,) = jnp.nonzero(keep, size=size, fill_value=0)
+    count = jnp.sum(keep)
+    return (*(c[sel] for c in cols), jnp.arange(size) < count, count)
 
 
 def step_radius(cloth, sc: SelfContact):
@@ -283,19 +306,31 @@ def find_pairs_fitting(cloth, sc: SelfContact, x, radii, motion=None):
     n, ne = x.shape[0], e.shape[0]
     motion = jnp.zeros(n, x.dtype) if motion is None else jax.lax.stop_gradient(motion)
     elen = safe_norm(x[e[:, 1]] - x[e[:, 0]])
-    cell = jnp.max(elen) * 1.01 + radii[0] + 2.0 * jnp.max(motion)
-    cell = jnp.where(jnp.isfinite(cell) & (cell > 0), cell, 1.0)
     cap = sc.capacity
-    # vertex-triangle
-    qi, ti, ok, tot_vt = _candidates(x, jnp.mean(x[f], axis=1), cell, 16 * cap * n)
+    far = radii[0] + 2.0 * jnp.max(motion)
+    sized = lambda c: jnp.where(jnp.isfinite(c) & (c > 0), c, 1.0)
+    # vertex-triangle: a vertex within r of a triangle is within r + the triangle's reach from
+    # its centre (the farthest corner): the exact distance runs on those only (a sixth or so)
+    ctr = jnp.mean(x[f], axis=1)
+    tri_r = jnp.max(safe_norm(x[f] - ctr[:, None]), axis=1)
+    qi, ti, ok, tot_vt = _candidates(x, ctr, sized(1.01 * (jnp.max(tri_r) + far)), 16 * cap * n)
+    ok = ok & (jnp.sum((x[qi] - ctr[ti]) ** 2, axis=1) <= (far + tri_r[ti]) ** 2)
+    qi, ti, ok, near_vt = _compact(ok, 4 * cap * n, qi, ti)
     idx_vt = jnp.concatenate([qi[:, None], f[ti]], axis=1).astype(jnp.int32)
     ok = ok & jnp.all(idx_vt[:, 1:] != idx_vt[:, :1], axis=1)
-    # edge-edge
+    # edge-edge: within r + the two half lengths between midpoints
     mid = 0.5 * (x[e[:, 0]] + x[e[:, 1]])
-    qe, te, oke, tot_ee = _candidates(mid, mid, cell, 16 * cap * ne)
+    cell_ee = sized(1.01 * (jnp.max(elen) + far))
+    qe, te, oke, tot_ee = _candidates(mid, mid, cell_ee, 16 * cap * ne, _HALF)
+    oke = oke & (
+        (qe < te) | jnp.any(jnp.floor(mid[qe] / cell_ee) != jnp.floor(mid[te] / cell_ee), axis=1)
+    )
+    oke = oke & (safe_norm(mid[qe] - mid[te]) <= far + 0.5 * (elen[qe] + elen[te]))
+    qe, te = jnp.minimum(qe, te), jnp.maximum(qe, te)  # the lower edge first
+    qe, te, oke, near_ee = _compact(oke, 4 * cap * ne, qe, te)
     idx_ee = jnp.concatenate([e[qe], e[te]], axis=1).astype(jnp.int32)
     share = (idx_ee[:, :2, None] == idx_ee[:, None, 2:]).reshape(-1, 4)
-    oke = oke & (qe < te) & ~jnp.any(share, axis=1)
+    oke = oke & ~jnp.any(share, axis=1)
     rows = []
     for idx, good, k, size in ((idx_vt, ok, 0, cap * n), (idx_ee, oke, 1, cap * ne)):
         d = safe_norm(_gap_of(x, idx, k))
@@ -316,6 +351,7 @@ def find_pairs_fitting(cloth, sc: SelfContact, x, radii, motion=None):
         kind = jnp.full((size,), k, jnp.int32)
         out.append((idx[sel], kind, live, jnp.sum(good), size, jnp.where(live, d[sel], jnp.inf)))
     overflow = (tot_vt > 16 * cap * n) | (tot_ee > 16 * cap * ne) | ~jnp.any(fits)
+    overflow = overflow | (near_vt > 4 * cap * n) | (near_ee > 4 * cap * ne)
     pairs = Pairs(
         idx=jnp.concatenate([out[0][0], out[1][0]]),
         kind=jnp.concatenate([out[0][1], out[1][1]]),
