@@ -113,6 +113,45 @@ def test_broad_phase_finds_the_brute_force_pairs():
             assert dist == pytest.approx(ref, abs=1e-9)
 
 
+def _all_pairs(cloth, x, radius):
+    """Every pair closer than radius by a dense search over all vertex-face and edge-edge
+    pairs (the closest-point weights are checked against numpy above)."""
+    f, e = np.asarray(cloth.faces), np.asarray(cloth.edges)
+    v, t = np.meshgrid(np.arange(len(x)), np.arange(len(f)), indexing="ij")
+    vt = np.concatenate([v.reshape(-1, 1), f[t.reshape(-1)]], axis=1)
+    vt = vt[np.all(vt[:, 1:] != vt[:, :1], axis=1)]
+    i, j = np.triu_indices(len(e), 1)
+    ee = np.concatenate([e[i], e[j]], axis=1)
+    ee = ee[~np.any(ee[:, :2, None] == ee[:, None, 2:], axis=(1, 2))]
+    out = set()
+    for idx, k in ((vt, 0), (ee, 1)):
+        d = np.linalg.norm(np.asarray(_GAP(jnp.asarray(x), jnp.asarray(idx, jnp.int32),
+                                           jnp.full(len(idx), k, jnp.int32))), axis=1)  # fmt: skip
+        out |= {(k, *(int(a) for a in r)) for r in idx[d < radius]}
+    return out
+
+
+def test_broad_phase_over_many_cells_finds_every_pair_once():
+    """A crumpled 21 x 21 sheet searched at a radius far below its size (hundreds of cells,
+    the edges' half neighbourhoods and hashed cells in use): the same pairs as a dense search,
+    none twice."""
+    cloth = make_cloth(rectangle(0.4, 0.4, 0.02))
+    r = np.asarray(cloth.rest, np.float64)
+    rng = np.random.default_rng(3)
+    x = r.copy()
+    x[:, 1] = 0.03 * np.sin(40 * r[:, 0]) * np.cos(30 * r[:, 2]) + 0.004 * rng.normal(size=len(r))
+    x[:, 0] = r[:, 0] * (0.85 - 0.15 * np.tanh(r[:, 2] / 0.04)) + 0.003 * rng.normal(size=len(r))
+    radius = 0.012
+    pairs = sc.check_pairs(_FIND(cloth, sc.make_self_contact(capacity=16), jnp.asarray(x),
+                                         radius))  # fmt: skip
+    idx, kind, valid = (np.asarray(a) for a in (pairs.idx, pairs.kind, pairs.valid))
+    rows = [(int(k), *(int(i) for i in r)) for r, k, ok in zip(idx, kind, valid, strict=True) if ok]
+    assert len(rows) == len(set(rows)) == int(pairs.count)
+    want = _all_pairs(cloth, x, radius)
+    assert len(want) > 500
+    assert set(rows) == want
+
+
 def test_capacity_overflow_is_reported():
     cloth, x = folded_sheet()
     pairs = _FIND(cloth, sc.make_self_contact(capacity=1), jnp.asarray(x), 0.2)
