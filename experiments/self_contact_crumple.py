@@ -16,6 +16,7 @@ converge.
     python experiments/self_contact_crumple.py square --size 0.5 --edge 0.0107 --seconds 3
     python experiments/self_contact_crumple.py disc --size 0.15 --edge 0.0057 --seconds 3
     python experiments/self_contact_crumple.py square --size 0.25 --seconds 0.5 --tol 0.05
+    python experiments/self_contact_crumple.py square --max-wall 3600 --resume   # in parts
 """
 
 from __future__ import annotations
@@ -93,11 +94,14 @@ def crumple(
     tol=1e-2,
     self_contact=True,
     step_fraction=0.5,
+    state=None,
 ):
     """Run a scene; returns (cloth, frames (list of (n, 3) arrays, every `every` frames and the
     last), rows (per-frame dicts), info); stops at the first frame that does not converge, or
     after the frame that ends past max_wall seconds of wall time. self_contact False: the same
-    solve without it (the baseline of its Newton iterations)."""
+    solve without it (the baseline of its Newton iterations). state: an .npz path written after
+    every frame (positions, velocities, the rows and kept frames so far) and, where it exists,
+    resumed from (a long run spread over several calls; the steps are deterministic)."""
     if scene == "square":
         cloth, x0, colliders, pins = square_scene(size, edge)
     else:
@@ -119,8 +123,14 @@ def crumple(
         faces = np.asarray(cloth.faces)
         frames, rows, ids = [np.asarray(x)], [], [0]
         nframes = int(round(seconds / DT))
+        if state is not None and Path(state).exists():
+            saved = np.load(state)
+            x, v = jnp.asarray(saved["x"]), jnp.asarray(saved["v"])
+            frames, ids = list(saved["frames"]), [int(i) for i in saved["ids"]]
+            rows = json.loads(str(saved["rows"]))
+            log(f"resumed from {state} after frame {len(rows)}")
         start = time.perf_counter()
-        for k in range(nframes):
+        for k in range(len(rows), nframes):
             if pins is not None:  # the rim pins' next positions (kept by the step)
                 t1 = (k + 1) * DT
                 xn = np.asarray(x).copy()
@@ -141,6 +151,11 @@ def crumple(
             if (k + 1) % every == 0 or k + 1 == nframes or not bool(conv):
                 frames.append(xa)
                 ids.append(k + 1)
+            if state is not None and bool(conv) and finite:
+                keep = frames if ids[-1] == k + 1 else [*frames, xa]
+                np.savez(state, x=xa, v=np.asarray(v), frames=np.stack(keep),
+                         ids=np.asarray(ids if ids[-1] == k + 1 else [*ids, k + 1]),
+                         rows=json.dumps(rows))  # fmt: skip
             if not bool(conv) or not finite:
                 break
             if max_wall is not None and time.perf_counter() - start > max_wall:
@@ -213,6 +228,12 @@ def main(argv=None):
         action="store_true",
         help="the same scene and solve without self-contact (its Newton iterations' baseline)",
     )
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue from <out>/<scene tag>.state.npz (written after every frame) where it "
+        "exists, appending to the log: a long run over several calls",
+    )
     ap.add_argument("--out", default=str(ROOT / "results" / "self_contact_crumple"))
     args = ap.parse_args(argv)
     size = args.size or (0.5 if args.scene == "square" else 0.15)
@@ -226,7 +247,10 @@ def main(argv=None):
         tag += "_no_self_contact"
     if args.step_fraction != 0.5:
         tag += f"_sf{args.step_fraction:g}"
-    log_file = open(out / f"{tag}.log", "w")  # noqa: SIM115
+    state = out / f"{tag}.state.npz"
+    if not args.resume:
+        state.unlink(missing_ok=True)
+    log_file = open(out / f"{tag}.log", "a" if args.resume else "w")  # noqa: SIM115
 
     def log(line):
         print(line, flush=True)
@@ -248,6 +272,7 @@ def main(argv=None):
         args.tol,
         not args.no_self_contact,
         args.step_fraction,
+        state,
     )
     ids = info.pop("frame_ids")
     summary = dict(scene=args.scene, size_m=size, edge_m=edge, seconds=args.seconds,
@@ -257,6 +282,7 @@ def main(argv=None):
                    max_iterations=max(r["iterations"] for r in rows),
                    mean_iterations=float(np.mean([r["iterations"] for r in rows])),
                    max_pairs=max(r["pairs"] for r in rows), wall_s=round(time.perf_counter() - t0),
+                   step_seconds=round(sum(r["seconds"] for r in rows), 1),
                    commit=commit, load_1min=os.getloadavg()[0], **info)  # fmt: skip
     log(json.dumps(summary))
     (out / f"{tag}.json").write_text(json.dumps(dict(summary=summary, frames=rows), indent=1))
