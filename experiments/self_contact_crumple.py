@@ -7,11 +7,12 @@ frame with every frame checked by the independent numpy triangle-triangle inters
   disc    a horizontal disc with its rim pinned, the pins moved inward to half the radius over
           the first 2/3 of the run (then held): gravity and the shrinking rim push it into folds.
 
-float64, implicit Euler at dt = 1/60 s, "wang2011-gray-interlock", thickness min(2 mm, 0.4 x
-the shortest rest triangle height), tol 1e-2 (--tol), max_iters 300. Writes results/self_contact_crumple/
-<scene>.json (per frame: converged, Newton iterations, residual, pairs in contact, intersecting
-triangle pairs, seconds) and <scene>.png (six frames). Stops at the first frame that does not
-converge.
+float64, implicit Euler at dt = 1/60 s (a frame whose step does not converge is rerun from its
+start as 2, then 4 steps of dt / 2, dt / 4), "wang2011-gray-interlock", thickness min(2 mm,
+0.4 x the shortest rest triangle height), tol 1e-2 (--tol), max_iters 300. Writes
+results/self_contact_crumple/<scene>.json (per frame: converged, Newton iterations, residual,
+pairs in contact, intersecting triangle pairs, seconds; substeps where more than one) and
+<scene>.png (six frames). Stops at the first frame that does not converge in 4 steps.
 
     python experiments/self_contact_crumple.py square --size 0.5 --edge 0.0107 --seconds 3
     python experiments/self_contact_crumple.py disc --size 0.15 --edge 0.0057 --seconds 3
@@ -95,13 +96,16 @@ def crumple(
     self_contact=True,
     step_fraction=0.5,
     state=None,
+    substeps=(1, 2, 4),
 ):
     """Run a scene; returns (cloth, frames (list of (n, 3) arrays, every `every` frames and the
     last), rows (per-frame dicts), info); stops at the first frame that does not converge, or
     after the frame that ends past max_wall seconds of wall time. self_contact False: the same
     solve without it (the baseline of its Newton iterations). state: an .npz path written after
     every frame (positions, velocities, the rows and kept frames so far) and, where it exists,
-    resumed from (a long run spread over several calls; the steps are deterministic)."""
+    resumed from (a long run spread over several calls; the steps are deterministic). substeps:
+    the implicit steps a frame is tried with, in turn, until one converges (a frame whose one
+    step of dt does not converge is rerun from its start as 2, then 4 steps)."""
     if scene == "square":
         cloth, x0, colliders, pins = square_scene(size, edge)
     else:
@@ -117,8 +121,8 @@ def crumple(
     pinned = np.asarray(cloth.pinned)
     rest = np.asarray(cloth.rest)
     with jax.numpy_rank_promotion("allow"):
-        step = jax.jit(lambda x, v: step_with_stats(cloth, fabric, x, v, DT, colliders, s,
-                                                    settings))  # fmt: skip
+        step = jax.jit(lambda x, v, h: step_with_stats(cloth, fabric, x, v, h, colliders, s,
+                                                       settings))  # fmt: skip
         x, v = jnp.asarray(x0), jnp.zeros(x0.shape)
         faces = np.asarray(cloth.faces)
         frames, rows, ids = [np.asarray(x)], [], [0]
@@ -130,15 +134,35 @@ def crumple(
             rows = json.loads(str(saved["rows"]))
             log(f"resumed from {state} after frame {len(rows)}")
         start = time.perf_counter()
+
+        def advance(x, v, k, n):
+            """Frame k as n implicit steps of DT / n: (x, v, converged, Newton iterations,
+            residual, pairs, intersecting pairs at the substeps' ends before the last)."""
+            its, between = 0, 0
+            for j in range(n):
+                if pins is not None:  # the rim pins' next positions (kept by the step)
+                    t1 = (k + (j + 1) / n) * DT
+                    xn = np.asarray(x).copy()
+                    xn[pinned, 0] = rest[pinned, 0] * pins(t1)
+                    xn[pinned, 2] = rest[pinned, 2] * pins(t1)
+                    x = jnp.asarray(xn)
+                x, v, conv, it, res, cnt = jax.block_until_ready(step(x, v, DT / n))
+                its += int(it)
+                if not bool(conv):
+                    break
+                if j < n - 1:
+                    between = max(between, len(intersecting_pairs(np.asarray(x), faces)))
+            return x, v, conv, its, res, cnt, between
+
         for k in range(len(rows), nframes):
-            if pins is not None:  # the rim pins' next positions (kept by the step)
-                t1 = (k + 1) * DT
-                xn = np.asarray(x).copy()
-                xn[pinned, 0] = rest[pinned, 0] * pins(t1)
-                xn[pinned, 2] = rest[pinned, 2] * pins(t1)
-                x = jnp.asarray(xn)
             t0 = time.perf_counter()
-            x, v, conv, it, res, cnt = jax.block_until_ready(step(x, v))
+            failed = []  # a frame whose step does not converge is rerun as 2, then 4 steps
+            for n in substeps:
+                xs, vs, conv, it, res, cnt, between = advance(x, v, k, n)
+                if bool(conv):
+                    break
+                failed.append(dict(substeps=n, iterations=it, residual=float(res)))
+            x, v = xs, vs
             sec = time.perf_counter() - t0
             xa = np.asarray(x)
             finite = bool(np.all(np.isfinite(xa)))
@@ -146,6 +170,8 @@ def crumple(
             row = dict(frame=k + 1, t=round((k + 1) * DT, 4), converged=bool(conv),
                        iterations=int(it), residual=float(res), pairs=int(cnt),
                        intersecting=int(len(bad)), seconds=round(sec, 2))  # fmt: skip
+            if n > 1:
+                row.update(substeps=n, intersecting_substeps=between, failed=failed)
             rows.append(row)
             log(json.dumps(row))
             if (k + 1) % every == 0 or k + 1 == nframes or not bool(conv):
