@@ -83,6 +83,17 @@ def disc_scene(radius, edge, seconds):
     return cloth, x, None, pins
 
 
+def _first_substeps(rows, settle=10):
+    """The steps a frame is tried with first: as many as the last frame needed (a failed try
+    costs max_iters iterations), half as many once the last `settle` frames all needed that."""
+    prev = [r.get("substeps", 1) for r in rows[-settle:]]
+    if not prev:
+        return 1
+    if len(prev) == settle and len(set(prev)) == 1:
+        return max(prev[-1] // 2, 1)
+    return prev[-1]
+
+
 def crumple(
     scene,
     size,
@@ -157,7 +168,8 @@ def crumple(
         for k in range(len(rows), nframes):
             t0 = time.perf_counter()
             failed = []  # a frame whose step does not converge is rerun as 2, then 4 steps
-            for n in substeps:
+            first = _first_substeps(rows)
+            for n in [m for m in substeps if m >= first] or substeps[-1:]:
                 xs, vs, conv, it, res, cnt, between = advance(x, v, k, n)
                 if bool(conv):
                     break
