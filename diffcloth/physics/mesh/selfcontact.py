@@ -300,7 +300,8 @@ def find_pairs_fitting(cloth, sc: SelfContact, x, radii, motion=None):
     """`find_pairs_with_distance` at the largest of the radii (K,) m (descending) whose pairs
     fit the capacity, from one broad phase (its cells sized for radii[0]): in a pile of layers
     the pairs within the full radius can overflow where a shorter one fits. Overflow: the raw
-    candidates at radii[0] did not fit their slots, or no radius's pairs fit.
+    candidates at radii[0] or those left by the bounding-sphere test did not fit their slots,
+    or no radius's pairs fit.
     Shapes: x (n, 3), radii (K,), motion (n,) -> (Pairs with P rows, (P,), () the radius)."""
     x = jax.lax.stop_gradient(x)
     radii = jax.lax.stop_gradient(radii)

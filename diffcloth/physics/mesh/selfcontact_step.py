@@ -14,9 +14,8 @@ that reach overflows the broad phase's capacity (a pile of layers), the same bro
 the largest reach of a ladder (B, B/2, ..., B/16 and the step's own) whose pairs fit
 (`selfcontact.find_pairs_fitting`), and a step longer than that reach is cut to it; where the
 raw candidates overflow their slots (cells sized for B), the search runs again with cells for
-B/4, then for the step's own reach. Before
-2026-11-29 an overflow found C again with the step's own reach, two broad phases at every step
-while the pile lasted.
+B/4, then for the step's own reach. Before 2026-11-29 an overflow found C again with the
+step's own reach, two broad phases at every step while the pile lasted.
 
 Per Newton iteration, on C's rows (`selfcontact_energy.within`): the active pairs (closer than
 d_hat at the iterate: the gradient, the Hessian-vector products, the preconditioner) and the
