@@ -16,9 +16,8 @@ Case
                 phase, the step filter and the barrier terms themselves. Warm medians
                 (`off_ms`, `on_ms`, `on_off_ratio`), Newton iterations and first-call times.
 
-Newton's VBD cloth self-contact (benchmarks/peers/newton_cloth.py) is not compared: that peer
-runs VBD without self-contact, and a like-for-like scene with its self-contact handling is not
-written yet.
+Newton's VBD cloth with and without its self-contact, in the same run as diffcloth on the
+peer's own scene: benchmarks/peers/newton_self_contact.py.
 """
 
 from __future__ import annotations
