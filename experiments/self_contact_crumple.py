@@ -269,8 +269,8 @@ def main(argv=None):
     ap.add_argument(
         "--resume",
         action="store_true",
-        help="continue from <out>/<scene tag>.state.npz (written after every frame) where it "
-        "exists, appending to the log: a long run over several calls",
+        help="continue from <out>/<scene tag>.state.npz (written after every converged frame) "
+        "where it exists, appending to the log: a long run over several calls",
     )
     ap.add_argument("--out", default=str(ROOT / "results" / "self_contact_crumple"))
     args = ap.parse_args(argv)
