@@ -229,16 +229,17 @@ def _keys(cells):
     )
 
 
-def _candidates(query, target, cell, slots, offsets=_OFFSETS):
+def _candidates(query, target, cell, slots, half=False):
     """(slots,) query index, target index and valid mask of the (query, target) pairs whose
-    cells are neighbours (offsets: `_OFFSETS`, the 27 cells around a query's, or `_HALF` where
-    query and target are one set: each unordered pair once; a target whose cell only shares a
-    hash with one of them is dropped), and their total count."""
+    cells are neighbours (the 27 cells around a query's; half: query and target are one set,
+    and each unordered pair comes once, from `_HALF`; a target whose cell only shares a hash
+    with one of them is dropped), and their total count."""
     tcell = jnp.floor(target / cell).astype(jnp.int32)
     tkey = _keys(tcell)
     order = jnp.argsort(tkey)
     skey = tkey[order]
     qcell = jnp.floor(query / cell).astype(jnp.int32)
+    offsets = _HALF if half else _OFFSETS
     k = offsets.shape[0]
     nkeys = _keys(qcell[:, None, :] + jnp.asarray(offsets)[None])  # (nq, K)
     earlier = jnp.asarray(np.tril(np.ones((k, k), bool), -1))
@@ -255,7 +256,7 @@ def _candidates(query, target, cell, slots, offsets=_OFFSETS):
     # the target's own cell is one of the query's (its key's range may hold other cells)
     diff = tcell[tgt] - qcell[q]
     near = jnp.all(jnp.abs(diff) <= 1, axis=1)
-    if k == _HALF.shape[0]:  # query = target: the lexicographically positive offsets, and in
+    if half:  # query = target: the lexicographically positive offsets, and in
         d0, d1, d2 = diff[:, 0], diff[:, 1], diff[:, 2]  # the cell itself the lower index first
         after = (d0 > 0) | ((d0 == 0) & ((d1 > 0) | ((d1 == 0) & (d2 > 0))))
         near = near & (after | (jnp.all(diff == 0, axis=1) & (q < tgt)))
@@ -324,7 +325,7 @@ def find_pairs_fitting(cloth, sc: SelfContact, x, radii, motion=None):
     # edge-edge: within r + the two half lengths between midpoints
     mid = 0.5 * (x[e[:, 0]] + x[e[:, 1]])
     cell_ee = sized(1.01 * (jnp.max(elen) + far))
-    qe, te, oke, tot_ee = _candidates(mid, mid, cell_ee, 16 * cap * ne, _HALF)
+    qe, te, oke, tot_ee = _candidates(mid, mid, cell_ee, 16 * cap * ne, half=True)
     oke = oke & (safe_norm(mid[qe] - mid[te]) <= far + 0.5 * (elen[qe] + elen[te]))
     qe, te = jnp.minimum(qe, te), jnp.maximum(qe, te)  # the lower edge first
     qe, te, oke, near_ee = _compact(oke, 4 * cap * ne, qe, te)
